@@ -1,0 +1,36 @@
+# Two entry points (see README): `make run` and `make test`.
+# Both create .venv with the project installed (PyPI only), then do their job.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+CORES  ?= 2
+
+.PHONY: run test test-all samples bench lint clean
+
+$(BIN)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[test]"
+	touch $@
+
+run: $(BIN)/.installed          ## run the whole pipeline on data_samples/ -> results/summary.csv
+	$(BIN)/snakemake --cores $(CORES)
+	@echo; echo "== results/summary.csv =="; cat results/summary.csv
+
+test: $(BIN)/.installed         ## the default (fast) test suite
+	$(BIN)/pytest
+
+test-all: $(BIN)/.installed     ## include the slow tests
+	$(BIN)/pytest -m "slow or not slow"
+
+samples: $(BIN)/.installed      ## regenerate data_samples/ and config/tips/ from the seeded generator
+	$(BIN)/python -m pipeline make-samples --out data_samples --config-dir config/tips
+
+bench: $(BIN)/.installed        ## print the run-time vs error tables
+	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+lint: $(BIN)/.installed
+	$(BIN)/snakemake --lint
+
+clean:
+	rm -rf results .snakemake

@@ -1,0 +1,199 @@
+"""Command line for running one pipeline stage (what each Snakemake rule calls).
+
+    python -m pipeline profiles  --tip-config config/tips/tipA.yaml --interval scan000 --out-h5 ... --out-png ...
+    python -m pipeline fit       --tip-config ... --interval ... --profile-h5 ... --out-h5 ...
+    python -m pipeline fit-figure --tip-config ... --out-png ... FIT_H5...
+    python -m pipeline forces    --tip-config ... --interval ... --out-h5 ... --out-png ...
+    python -m pipeline inversion --tip-config ... --workflow-config ... --fits DIR --forces DIR --out-h5 ...
+    python -m pipeline adhesion-range --tip-config ... --inversion-h5 ... --out-h5 ... --report-csv ... --fig-dir ...
+    python -m pipeline summary   --out-csv results/summary.csv RANGE_H5...
+    python -m pipeline validate  [--workflow-config config/config.yaml]
+    python -m pipeline make-samples --out data_samples
+
+Each subcommand loads and validates the tip YAML (units -> SI), then calls one
+function of the science package.  Errors print one line naming the file and the
+reason and exit with status 1.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _interval(tip: dict, name: str) -> dict:
+    for iv in tip["intervals"]:
+        if iv["name"] == name:
+            return iv
+    from pipeline.config import ConfigError
+
+    raise ConfigError(f"{tip['source']}: no interval named {name!r}")
+
+
+def cmd_profiles(a):
+    from pipeline.config import load_tip_config
+    from pipeline.tem.stage import run_profiles
+
+    tip = load_tip_config(a.tip_config)
+    iv = _interval(tip, a.interval)
+    run_profiles(
+        iv["image_path"], a.out_h5, a.out_png,
+        pixel_size=tip["tem"].get("pixel_size"), orientation=tip["tem"]["orientation"],
+        tip=tip["name"], interval=iv["name"],
+    )
+
+
+def cmd_fit(a):
+    from pipeline.config import load_tip_config
+    from pipeline.fits import run_fit
+
+    tip = load_tip_config(a.tip_config)
+    iv = _interval(tip, a.interval)
+    run_fit(a.profile_h5, a.out_h5, fit_height=tip["tem"]["fit_height"], S=tip["tem"]["S"], tip=tip["name"], interval=iv["name"])
+
+
+def cmd_fit_figure(a):
+    from pipeline.fits import plot_tip_fits
+
+    plot_tip_fits(a.fit_h5, a.out_png, labels=[Path(p).stem for p in a.fit_h5])
+
+
+def cmd_forces(a):
+    from pipeline.config import load_tip_config
+    from pipeline.forces.stage import run_forces
+
+    tip = load_tip_config(a.tip_config)
+    iv = _interval(tip, a.interval)
+    run_forces(
+        [str(p) for p in iv["curve_paths"]], a.out_h5, a.out_png,
+        cantilever=tip["cantilever"], reader=tip["force_curves"], tip=tip["name"], interval=iv["name"],
+    )
+
+
+def cmd_inversion(a):
+    import numpy as np
+
+    from pipeline.config import load_tip_config
+    from pipeline.inversion import run_inversion
+
+    tip = load_tip_config(a.tip_config)
+    names = [iv["name"] for iv in tip["intervals"]]
+    run_inversion(
+        {n: str(Path(a.fits) / f"{n}.h5") for n in names},
+        {n: str(Path(a.forces) / f"{n}.h5") for n in names},
+        a.out_h5,
+        intervals=[{"name": iv["name"], "scans": iv["scans"], "reference": iv["reference"]} for iv in tip["intervals"]],
+        E_star=tip["materials"]["E_star"], u_E_star=tip["materials"]["u_E_star"],
+        h_grid=np.geomspace(a.h_min, a.h_max, a.h_points) if a.h_spacing == "log" else np.linspace(a.h_min, a.h_max, a.h_points),
+        laws=a.laws.split(","), solver_mode=a.solver_mode, mc_samples=a.mc_samples, seed=a.seed, tip=tip["name"],
+    )
+
+
+def cmd_adhesion_range(a):
+    from pipeline.adhesion_range import run_adhesion_range
+    from pipeline.config import load_tip_config
+
+    tip = load_tip_config(a.tip_config)
+    run_adhesion_range(a.inversion_h5, a.out_h5, a.report_csv, a.fig_dir, tip=tip["name"])
+
+
+def cmd_summary(a):
+    from pipeline.reports import write_summary
+
+    write_summary({Path(p).parent.name: p for p in a.range_h5}, a.out_csv)
+
+
+def cmd_rigid_laws_figure(a):
+    from pipeline.figures_adhesion import plot_rigid_laws
+
+    plot_rigid_laws(a.out_png)
+
+
+def cmd_validate(a):
+    from pipeline.config import discover_tips, load_tip_config, load_workflow_config
+
+    wf = load_workflow_config(a.workflow_config)
+    for name, path in discover_tips(wf).items():
+        tip = load_tip_config(path)
+        print(f"{path}: ok ({len(tip['intervals'])} intervals, E* = {tip['materials']['E_star'] / 1e9:.4g} GPa)")
+
+
+def cmd_make_samples(a):
+    from pipeline.synth.wear_test import write_sample_bundle
+
+    write_sample_bundle(a.out, config_dir=a.config_dir)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    def stage(name, func, tip=True, interval=False):
+        s = sub.add_parser(name)
+        if tip:
+            s.add_argument("--tip-config", required=True)
+        if interval:
+            s.add_argument("--interval", required=True)
+        s.set_defaults(func=func)
+        return s
+
+    s = stage("profiles", cmd_profiles, interval=True)
+    s.add_argument("--out-h5", required=True)
+    s.add_argument("--out-png", required=True)
+
+    s = stage("fit", cmd_fit, interval=True)
+    s.add_argument("--profile-h5", required=True)
+    s.add_argument("--out-h5", required=True)
+
+    s = stage("fit-figure", cmd_fit_figure, tip=False)
+    s.add_argument("--out-png", required=True)
+    s.add_argument("fit_h5", nargs="+")
+
+    s = stage("forces", cmd_forces, interval=True)
+    s.add_argument("--out-h5", required=True)
+    s.add_argument("--out-png", required=True)
+
+    s = stage("inversion", cmd_inversion)
+    s.add_argument("--fits", required=True, help="folder of per-interval fit HDF5 files")
+    s.add_argument("--forces", required=True, help="folder of per-interval forces HDF5 files")
+    s.add_argument("--out-h5", required=True)
+    s.add_argument("--h-min", type=float, required=True, help="m")
+    s.add_argument("--h-max", type=float, required=True, help="m")
+    s.add_argument("--h-points", type=int, required=True)
+    s.add_argument("--h-spacing", choices=["log", "linear"], default="log")
+    s.add_argument("--laws", required=True, help="comma-separated traction laws")
+    s.add_argument("--solver-mode", choices=["auto", "mdn", "rigid"], required=True)
+    s.add_argument("--mc-samples", type=int, required=True)
+    s.add_argument("--seed", type=int, required=True)
+
+    s = stage("adhesion-range", cmd_adhesion_range)
+    s.add_argument("--inversion-h5", required=True)
+    s.add_argument("--out-h5", required=True)
+    s.add_argument("--report-csv", required=True)
+    s.add_argument("--fig-dir", required=True)
+
+    s = stage("summary", cmd_summary, tip=False)
+    s.add_argument("--out-csv", required=True)
+    s.add_argument("range_h5", nargs="+")
+
+    s = stage("rigid-laws-figure", cmd_rigid_laws_figure, tip=False)
+    s.add_argument("--out-png", required=True)
+
+    s = stage("validate", cmd_validate, tip=False)
+    s.add_argument("--workflow-config", default="config/config.yaml")
+
+    s = stage("make-samples", cmd_make_samples, tip=False)
+    s.add_argument("--out", default="data_samples")
+    s.add_argument("--config-dir", default="config/tips", help="where to write the sample tips' YAMLs")
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except (ValueError, OSError) as exc:  # our errors are ValueError subclasses naming the file
+        print(f"error ({args.cmd}): {exc}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,29 @@
+# Stage 2: least-squares power law z = r^n/(nQ) on the profile up to fit_height (pipeline.fits).
+
+
+rule fits:
+    input:
+        profile=f"{RESULTS}/{{tip}}/profiles/{{interval}}.h5",
+        tip=tip_yaml,
+    output:
+        h5=f"{RESULTS}/{{tip}}/fits/{{interval}}.h5",
+    log:
+        f"{RESULTS}/logs/{{tip}}/fits/{{interval}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{tip}}/fits/{{interval}}.tsv"
+    shell:
+        "{PY} -m pipeline fit --tip-config {input.tip} --interval {wildcards.interval}"
+        " --profile-h5 {input.profile} --out-h5 {output.h5} > {log} 2>&1"
+
+
+rule fits_figure:
+    input:
+        lambda w: expand(f"{RESULTS}/{w.tip}/fits/{{interval}}.h5", interval=INTERVALS[w.tip]),
+    output:
+        report(f"{RESULTS}/{{tip}}/fits.png", category="2 Fits", subcategory="{tip}"),
+    log:
+        f"{RESULTS}/logs/{{tip}}/fits_figure.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{tip}}/fits_figure.tsv"
+    shell:
+        "{PY} -m pipeline fit-figure --out-png {output} {input} > {log} 2>&1"

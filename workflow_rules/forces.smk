@@ -1,0 +1,17 @@
+# Stage 3: force curves -> calibrated pull-off forces F_p = k * Delta (pipeline.forces.stage).
+
+
+rule forces:
+    input:
+        curves=lambda w: [str(p) for p in interval_cfg(w)["curve_paths"]],
+        tip=tip_yaml,
+    output:
+        h5=f"{RESULTS}/{{tip}}/forces/{{interval}}.h5",
+        png=report(f"{RESULTS}/{{tip}}/forces/{{interval}}.png", category="3 Forces", subcategory="{tip}"),
+    log:
+        f"{RESULTS}/logs/{{tip}}/forces/{{interval}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{tip}}/forces/{{interval}}.tsv"
+    shell:
+        "{PY} -m pipeline forces --tip-config {input.tip} --interval {wildcards.interval}"
+        " --out-h5 {output.h5} --out-png {output.png} > {log} 2>&1"

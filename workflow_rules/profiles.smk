@@ -1,0 +1,17 @@
+# Stage 1: side-view TEM image -> sub-pixel apex profile z(r) (pipeline.tem.stage.run_profiles).
+
+
+rule profiles:
+    input:
+        image=lambda w: str(interval_cfg(w)["image_path"]),
+        tip=tip_yaml,
+    output:
+        h5=f"{RESULTS}/{{tip}}/profiles/{{interval}}.h5",
+        png=report(f"{RESULTS}/{{tip}}/profiles/{{interval}}.png", category="1 Profiles", subcategory="{tip}"),
+    log:
+        f"{RESULTS}/logs/{{tip}}/profiles/{{interval}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{tip}}/profiles/{{interval}}.tsv"
+    shell:
+        "{PY} -m pipeline profiles --tip-config {input.tip} --interval {wildcards.interval}"
+        " --out-h5 {output.h5} --out-png {output.png} > {log} 2>&1"

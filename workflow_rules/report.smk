@@ -1,0 +1,25 @@
+# Reports across tips: results/summary.csv (like the paper's Table 1) and the Fig. 8 comparison.
+
+
+rule summary:
+    input:
+        expand(f"{RESULTS}/{{tip}}/adhesion_range.h5", tip=TIPS),
+    output:
+        report(f"{RESULTS}/summary.csv", category="5 Summary"),
+    log:
+        f"{RESULTS}/logs/summary.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/summary.tsv"
+    shell:
+        "{PY} -m pipeline summary --out-csv {output} {input} > {log} 2>&1"
+
+
+rule rigid_laws_figure:
+    output:
+        report(f"{RESULTS}/rigid_laws.png", category="5 Summary"),
+    log:
+        f"{RESULTS}/logs/rigid_laws_figure.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rigid_laws_figure.tsv"
+    shell:
+        "{PY} -m pipeline rigid-laws-figure --out-png {output} > {log} 2>&1"
