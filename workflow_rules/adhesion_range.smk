@@ -2,6 +2,8 @@
 
 
 rule adhesion_range:
+    conda:
+        CONDA_ENV
     input:
         inversion=f"{RESULTS}/{{tip}}/inversion.h5",
         tip=tip_yaml,
@@ -17,5 +19,5 @@ rule adhesion_range:
     benchmark:
         f"{RESULTS}/benchmarks/{{tip}}/adhesion_range.tsv"
     shell:
-        "{PY} -m pipeline adhesion-range --tip-config {input.tip} --inversion-h5 {input.inversion}"
+        "python -m pipeline adhesion-range --tip-config {input.tip} --inversion-h5 {input.inversion}"
         " --out-h5 {output.h5} --report-csv {output.csv} --fig-dir {params.fig_dir} > {log} 2>&1"

@@ -1,5 +1,4 @@
 # Shared setup: validate every config before any job runs, list tips and intervals.
-import sys
 from pathlib import Path
 
 import yaml
@@ -7,9 +6,10 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 import pipeline.config as pc
+from pipeline.workflow_support import use_this_interpreter_for_jobs
 
-# The workflow config: schema check by Snakemake (fills defaults), then units -> SI.
-validate(config, "../pipeline/schemas/config.schema.yaml")
+# Validate everything before any job runs: our loader first (one clear line per problem,
+# naming file and key; units -> SI), then Snakemake's own schema check (fills defaults).
 try:
     WF = pc.load_workflow_config(config)
     TIP_FILES = {name: str(path) for name, path in pc.discover_tips(WF).items()}
@@ -20,10 +20,13 @@ try:
             validate(yaml.safe_load(_fh), "../pipeline/schemas/tip.schema.yaml")
 except pc.ConfigError as exc:
     raise WorkflowError(f"Configuration error: {exc}") from None
+validate(config, "../pipeline/schemas/config.schema.yaml")
 
 RESULTS = WF["results_dir"].rstrip("/")
 INTERVALS = {t: [iv["name"] for iv in tip["intervals"]] for t, tip in TIPS.items()}
-PY = sys.executable  # the interpreter that runs Snakemake has `pipeline` installed
+# Jobs call `python -m pipeline ...` with the interpreter that runs Snakemake.
+use_this_interpreter_for_jobs()
+CONDA_ENV = "envs/pipeline.yaml"
 
 
 wildcard_constraints:

@@ -2,6 +2,8 @@
 
 
 rule fits:
+    conda:
+        CONDA_ENV
     input:
         profile=f"{RESULTS}/{{tip}}/profiles/{{interval}}.h5",
         tip=tip_yaml,
@@ -12,11 +14,13 @@ rule fits:
     benchmark:
         f"{RESULTS}/benchmarks/{{tip}}/fits/{{interval}}.tsv"
     shell:
-        "{PY} -m pipeline fit --tip-config {input.tip} --interval {wildcards.interval}"
+        "python -m pipeline fit --tip-config {input.tip} --interval {wildcards.interval}"
         " --profile-h5 {input.profile} --out-h5 {output.h5} > {log} 2>&1"
 
 
 rule fits_figure:
+    conda:
+        CONDA_ENV
     input:
         lambda w: expand(f"{RESULTS}/{w.tip}/fits/{{interval}}.h5", interval=INTERVALS[w.tip]),
     output:
@@ -26,4 +30,4 @@ rule fits_figure:
     benchmark:
         f"{RESULTS}/benchmarks/{{tip}}/fits_figure.tsv"
     shell:
-        "{PY} -m pipeline fit-figure --out-png {output} {input} > {log} 2>&1"
+        "python -m pipeline fit-figure --out-png {output} {input} > {log} 2>&1"

@@ -2,6 +2,8 @@
 
 
 rule forces:
+    conda:
+        CONDA_ENV
     input:
         curves=lambda w: [str(p) for p in interval_cfg(w)["curve_paths"]],
         tip=tip_yaml,
@@ -13,5 +15,5 @@ rule forces:
     benchmark:
         f"{RESULTS}/benchmarks/{{tip}}/forces/{{interval}}.tsv"
     shell:
-        "{PY} -m pipeline forces --tip-config {input.tip} --interval {wildcards.interval}"
+        "python -m pipeline forces --tip-config {input.tip} --interval {wildcards.interval}"
         " --out-h5 {output.h5} --out-png {output.png} > {log} 2>&1"

@@ -2,6 +2,8 @@
 
 
 rule inversion:
+    conda:
+        CONDA_ENV
     input:
         fits=lambda w: expand(f"{RESULTS}/{w.tip}/fits/{{interval}}.h5", interval=INTERVALS[w.tip]),
         forces=lambda w: expand(f"{RESULTS}/{w.tip}/forces/{{interval}}.h5", interval=INTERVALS[w.tip]),
@@ -24,7 +26,7 @@ rule inversion:
     benchmark:
         f"{RESULTS}/benchmarks/{{tip}}/inversion.tsv"
     shell:
-        "{PY} -m pipeline inversion --tip-config {input.tip} --fits {params.fits_dir} --forces {params.forces_dir}"
+        "python -m pipeline inversion --tip-config {input.tip} --fits {params.fits_dir} --forces {params.forces_dir}"
         " --out-h5 {output.h5} --h-min {params.h_min} --h-max {params.h_max} --h-points {params.h_points}"
         " --h-spacing {params.h_spacing} --laws {params.laws} --solver-mode {params.solver_mode}"
         " --mc-samples {params.mc_samples} --seed {params.seed} > {log} 2>&1"

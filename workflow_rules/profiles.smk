@@ -2,6 +2,8 @@
 
 
 rule profiles:
+    conda:
+        CONDA_ENV
     input:
         image=lambda w: str(interval_cfg(w)["image_path"]),
         tip=tip_yaml,
@@ -13,5 +15,5 @@ rule profiles:
     benchmark:
         f"{RESULTS}/benchmarks/{{tip}}/profiles/{{interval}}.tsv"
     shell:
-        "{PY} -m pipeline profiles --tip-config {input.tip} --interval {wildcards.interval}"
+        "python -m pipeline profiles --tip-config {input.tip} --interval {wildcards.interval}"
         " --out-h5 {output.h5} --out-png {output.png} > {log} 2>&1"

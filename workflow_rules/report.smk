@@ -2,6 +2,8 @@
 
 
 rule summary:
+    conda:
+        CONDA_ENV
     input:
         expand(f"{RESULTS}/{{tip}}/adhesion_range.h5", tip=TIPS),
     output:
@@ -11,10 +13,12 @@ rule summary:
     benchmark:
         f"{RESULTS}/benchmarks/summary.tsv"
     shell:
-        "{PY} -m pipeline summary --out-csv {output} {input} > {log} 2>&1"
+        "python -m pipeline summary --out-csv {output} {input} > {log} 2>&1"
 
 
 rule rigid_laws_figure:
+    conda:
+        CONDA_ENV
     output:
         report(f"{RESULTS}/rigid_laws.png", category="5 Summary"),
     log:
@@ -22,4 +26,4 @@ rule rigid_laws_figure:
     benchmark:
         f"{RESULTS}/benchmarks/rigid_laws_figure.tsv"
     shell:
-        "{PY} -m pipeline rigid-laws-figure --out-png {output} > {log} 2>&1"
+        "python -m pipeline rigid-laws-figure --out-png {output} > {log} 2>&1"
