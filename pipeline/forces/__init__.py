@@ -1,0 +1,15 @@
+"""Stage 3: AFM force-distance curves -> calibrated pull-off forces F_p = k * Delta.
+
+Modules: ``curve`` (the ForceCurve container), ``read_csv`` / ``read_afmformats`` /
+``reading`` (input), ``baseline`` and ``pulloff`` (detection), ``contact_slope``,
+``reference_lever``, ``thermal`` and ``calibration`` (k and InvOLS with
+uncertainties), ``statistics`` (per-interval mean, outliers), ``figures`` and
+``stage`` (the Snakemake entry point :func:`pipeline.forces.stage.run_forces`).
+
+Conventions (SI inside): ``z`` is the piezo extension towards the sample (m,
+increases on approach); deflection is positive when the lever bends away from
+the sample (repulsive), in volts (``"V"``) or metres (``"m"``).
+"""
+from pipeline.forces.errors import ForceCurveError, ForcesStageError
+
+__all__ = ["ForceCurveError", "ForcesStageError"]

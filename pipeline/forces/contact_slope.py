@@ -1,0 +1,69 @@
+"""Deflection sensitivity (InvOLS, m/V) from the contact slope of curves on a hard sample."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.forces.baseline import fit_line
+from pipeline.forces.curve import ForceCurve
+from pipeline.forces.errors import ForceCurveError
+
+
+@dataclass
+class ContactSlope:
+    invols: float  # m/V
+    u_invols: float  # m/V, from the fit
+    slope: float  # V/m
+    n_points: int
+
+
+def contact_slope(z, d, *, fit_range=(0.2, 0.8), path="") -> ContactSlope:
+    """Slope of deflection (V) vs extension z (m) over the contact part of one segment.
+
+    The baseline is fitted on the 30 % of the z range farthest from the sample; the
+    fit uses the contiguous contact run next to the turnaround where the deflection
+    above baseline lies between ``fit_range`` fractions of its maximum.
+    """
+    z, d = np.asarray(z, float), np.asarray(d, float)
+    zmin, zmax = z.min(), z.max()
+    far = z <= zmin + 0.3 * (zmax - zmin)
+    if far.sum() < 10:
+        raise ForceCurveError(path, "too few free points for a baseline before the contact slope fit")
+    base = fit_line(z[far], d[far])
+    dc = d - base(z)
+    order = np.argsort(-z, kind="stable")  # from the turnaround outwards
+    dco = dc[order]
+    dmax = float(dc.max())
+    if not dmax > 10 * base.rms:
+        raise ForceCurveError(path, f"no repulsive contact: maximum deflection {dmax:.3g} is below 10 x noise {base.rms:.3g}")
+    lo, hi = fit_range[0] * dmax, fit_range[1] * dmax
+    below = np.flatnonzero(dco < lo)
+    end = int(below[0]) if below.size else dco.size
+    run = order[:end]
+    sel = run[(dc[run] >= lo) & (dc[run] <= hi)]
+    if sel.size < 5:
+        raise ForceCurveError(path, f"only {sel.size} points in the contact fit range {list(fit_range)}")
+    line = fit_line(z[sel], dc[sel])
+    if not line.slope > 0:
+        raise ForceCurveError(path, "contact slope is not positive")
+    return ContactSlope(1.0 / line.slope, line.u_slope / line.slope**2, line.slope, line.n)
+
+
+def invols_from_curves(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), segment="approach"):
+    """Mean InvOLS over hard-sample curves: (mean, u, per-curve values, per-curve fit u).
+
+    u = standard error of the mean for >= 2 curves, else the fit error.
+    """
+    vals, us = [], []
+    for c in curves:
+        z = c.z_approach if segment == "approach" else c.z_retract
+        cs = contact_slope(z, c.deflection_volts(segment), fit_range=fit_range, path=c.path)
+        vals.append(cs.invols)
+        us.append(cs.u_invols)
+    vals, us = np.array(vals), np.array(us)
+    if vals.size == 0:
+        raise ValueError("no hard-sample curves")
+    mean = float(vals.mean())
+    u = float(vals.std(ddof=1) / np.sqrt(vals.size)) if vals.size > 1 else float(us[0])
+    return mean, u, vals, us
