@@ -1,0 +1,234 @@
+"""Reports: the per-tip interval table and results/summary.csv (like the paper's Table 1).
+
+CSV conventions: column names carry their unit (``h_nm``, ``W_A_mJ_per_m2``,
+``F_p_nN``); a value that does not exist (NaN, no crossing, unusable interval) is an
+empty cell and the reason is in the matching ``status``/``note`` column.  Confidence
+intervals (``*_low``/``*_high``) are the 2.5th/97.5th percentiles of the Monte-Carlo
+estimates (``ci_level`` = 0.95); ``u_*`` is half the 16-84 % spread (1 sigma).
+"""
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+
+from pipeline.adhesion_range import CI_PCTS, load_range
+from pipeline.h5io import atomic_output
+from pipeline.inversion import CONVENTIONS, LJ_Z0_OVER_H
+from pipeline.units import to_unit
+
+CI_LEVEL = 0.95
+_I_LO, _I_16, _I_50, _I_84, _I_HI = (CI_PCTS.index(p) for p in (2.5, 16.0, 50.0, 84.0, 97.5))
+
+
+def fmt(value, digits: int = 4) -> str:
+    """Number -> text with ``digits`` significant digits; NaN/None/inf -> empty cell."""
+    if value is None:
+        return ""
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return value
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return str(value)
+    if not math.isfinite(v):
+        return ""
+    if v == int(v) and abs(v) < 1e15 and isinstance(value, (int, np.integer)):
+        return str(int(v))
+    return f"{v:.{digits}g}"
+
+
+def _nm(v):
+    return to_unit(float(v), "nm") if v is not None and np.isfinite(v) else np.nan
+
+
+def _mj(v):
+    return to_unit(float(v), "mJ/m^2") if v is not None and np.isfinite(v) else np.nan
+
+
+def _interp_ln(h_grid, y, hv):
+    """y(hv) by linear interpolation in ln h (NaN outside the grid or if not finite)."""
+    if not (np.isfinite(hv) and h_grid[0] <= hv <= h_grid[-1]):
+        return np.nan
+    y = np.asarray(y, float)
+    x = np.log(h_grid)
+    j = int(np.clip(np.searchsorted(x, np.log(hv)) - 1, 0, x.size - 2))
+    if not (np.isfinite(y[j]) and np.isfinite(y[j + 1])):
+        return np.nan
+    t = (np.log(hv) - x[j]) / (x[j + 1] - x[j])
+    return float(y[j] * (1 - t) + y[j + 1] * t)
+
+
+def _write_csv(path, columns, rows):
+    with atomic_output(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(columns)
+            for row in rows:
+                w.writerow([fmt(row.get(c)) for c in columns])
+
+
+def tip_report_rows(rng: dict) -> tuple[list, list]:
+    """Columns and rows (dicts) of the per-tip interval table."""
+    h = rng["h"]
+    laws = rng["law_order"]
+    cols = ["tip", "interval", "scans", "reference", "n", "u_n", "n_flag", "R_nm", "S", "Q_nm_pow_n_minus_1",
+            "F_p_nN", "u_F_p_nN", "F_p_sd_nN", "n_curves"]
+    for law in laws:
+        cols += [f"W_A_{law}_mJ_per_m2", f"h_{law}_nm", f"h_{law}_low_nm", f"h_{law}_high_nm",
+                 f"h_{law}_status", f"h_{law}_crossings_nm", f"h_{law}_note"]
+        if law == "tri2":
+            cols += ["h_tri2_full_range_nm"]
+        if law == "lj":
+            cols += ["z0_lj_nm"]
+    cols += ["h_estimate_dugdale_nm", "Lambda_at_estimate", "Lambda_boundary", "rigid_valid", "model_used_at_estimate",
+             "maugis_lambda_at_estimate", "ci_level"]
+    rows = []
+    gd = rng["laws"].get("dugdale", {}).get("global", {})
+    h_est_dug = float(gd.get("h", np.nan)) if gd else np.nan
+    for nm in rng["order"]:
+        d = rng["intervals"][nm]
+        n_used = float(d["n_used"])
+        q_nm = float(d["Q"]) / (1e-9) ** (n_used - 1.0) if np.isfinite(n_used) else np.nan
+        row = {
+            "tip": rng["tip"], "interval": nm, "scans": int(d["scans"]), "reference": bool(d["reference"]),
+            "n": float(d["n"]), "u_n": float(d["u_n"]), "n_flag": d["n_flag"], "R_nm": _nm(d["R"]), "S": float(d["S"]),
+            "Q_nm_pow_n_minus_1": float(np.exp(d["ln_Q_used"]) / (1e-9) ** (n_used - 1.0)) if np.isfinite(n_used) else q_nm,
+            "F_p_nN": to_unit(float(d["F_p_mean"]), "nN"), "u_F_p_nN": to_unit(float(d["F_p_sem"]), "nN"),
+            "F_p_sd_nN": to_unit(float(d["F_p_std"]), "nN"), "n_curves": int(d["n_curves"]), "ci_level": CI_LEVEL,
+        }
+        for law in laws:
+            L = rng["laws"][law]
+            iv = L["intervals"][nm]
+            g = L.get("global", {})
+            hv = float(g.get("h", np.nan)) if g else np.nan
+            row[f"W_A_{law}_mJ_per_m2"] = _mj(_interp_ln(h, iv["W_A"], hv))
+            st = iv["status"]
+            row[f"h_{law}_status"] = st
+            row[f"h_{law}_note"] = iv.get("note", "")
+            cr = np.atleast_1d(iv.get("crossings", []))
+            row[f"h_{law}_crossings_nm"] = ";".join(f"{_nm(c):.4g}" for c in cr if np.isfinite(c)) if st != "reference" else ""
+            if st == "ok":
+                row[f"h_{law}_nm"] = _nm(iv["h_cross"])
+                row[f"h_{law}_low_nm"] = _nm(iv["h_pcts"][_I_LO])
+                row[f"h_{law}_high_nm"] = _nm(iv["h_pcts"][_I_HI])
+                open_sides = [s for s, i in (("lower", _I_LO), ("upper", _I_HI)) if not np.isfinite(iv["h_pcts"][i])]
+                if open_sides:
+                    row[f"h_{law}_note"] = (f"95 % CI open on the {' and '.join(open_sides)} side (MC crossings beyond "
+                                            f"the h grid; crossing fraction {float(iv['crossing_fraction']):.2f})")
+                if law == "tri2":
+                    row["h_tri2_full_range_nm"] = 2.0 * _nm(iv["h_cross"])
+                if law == "lj":
+                    row["z0_lj_nm"] = _nm(iv["h_cross"]) * LJ_Z0_OVER_H
+        row["h_estimate_dugdale_nm"] = _nm(h_est_dug)
+        if "Lambda" in d:
+            row["Lambda_at_estimate"] = _interp_ln(h, d["Lambda"], h_est_dug)
+            lb = np.asarray(d["Lambda_boundary"], float)
+            row["Lambda_boundary"] = float(np.nanmedian(lb)) if np.any(np.isfinite(lb)) else np.nan
+            if np.isfinite(row["Lambda_at_estimate"]):
+                row["rigid_valid"] = bool(row["Lambda_at_estimate"] < row["Lambda_boundary"])
+                j = int(np.argmin(np.abs(np.log(h) - np.log(h_est_dug))))
+                row["model_used_at_estimate"] = str(d["model_used"][j])
+            if "maugis_lambda" in d:
+                row["maugis_lambda_at_estimate"] = _interp_ln(h, d["maugis_lambda"], h_est_dug)
+        rows.append(row)
+    return cols, rows
+
+
+def write_tip_report(range_h5, out_csv, *, tip: str = ""):
+    """Per-tip CSV, one row per interval (see module docstring for conventions)."""
+    rng = load_range(range_h5)
+    if tip:
+        rng["tip"] = tip
+    cols, rows = tip_report_rows(rng)
+    _write_csv(out_csv, cols, rows)
+    return rows
+
+
+SUMMARY_COLUMNS = [
+    "tip", "law", "solver_mode", "W_A_mJ_per_m2", "u_W_A_mJ_per_m2", "W_A_low_mJ_per_m2", "W_A_high_mJ_per_m2",
+    "h_nm", "u_h_nm", "h_low_nm", "h_high_nm", "h_full_range_nm", "h_full_range_low_nm", "h_full_range_high_nm",
+    "z0_lj_nm", "h_crossings_min_nm", "h_crossings_max_nm", "W_A_ref_mJ_per_m2", "u_W_A_ref_mJ_per_m2",
+    "W_A_ref_max_rel_change_over_h", "n_intervals_used", "n_intervals_crossing", "chi2", "dof", "p_value", "ci_level",
+    "h_convention", "status", "notes",
+]
+
+
+def summary_rows(rng: dict) -> list:
+    rows = []
+    for law in rng["law_order"]:
+        L = rng["laws"][law]
+        g = L.get("global", {})
+        row = {"tip": rng["tip"], "law": law, "solver_mode": rng["solver_mode"] if law == "dugdale" else "rigid",
+               "ci_level": CI_LEVEL, "h_convention": CONVENTIONS[law]}
+        notes = []
+        status = g.get("status", "no_reference") if g else "no_reference"
+        if g:
+            hp = np.asarray(g["h_pcts"], float)
+            wp = np.asarray(g["W_pcts"], float)
+            if status == "ok":
+                row["h_nm"] = _nm(g["h"])
+                row["u_h_nm"] = 0.5 * (_nm(hp[_I_84]) - _nm(hp[_I_16]))
+                row["h_low_nm"], row["h_high_nm"] = _nm(hp[_I_LO]), _nm(hp[_I_HI])
+                if not np.isfinite(hp[_I_LO]) or not np.isfinite(hp[_I_HI]):
+                    notes.append("h CI open (reaches the h grid edge)")
+                row["W_A_mJ_per_m2"] = _mj(g["W_A"])
+                row["u_W_A_mJ_per_m2"] = 0.5 * (_mj(wp[_I_84]) - _mj(wp[_I_16]))
+                row["W_A_low_mJ_per_m2"], row["W_A_high_mJ_per_m2"] = _mj(wp[_I_LO]), _mj(wp[_I_HI])
+                factor = {"dugdale": 1.0, "tri1": 1.0, "tri2": 2.0}.get(law)
+                if factor is not None:
+                    row["h_full_range_nm"] = factor * row["h_nm"]
+                    row["h_full_range_low_nm"] = factor * row["h_low_nm"]
+                    row["h_full_range_high_nm"] = factor * row["h_high_nm"]
+                if law == "lj":
+                    row["z0_lj_nm"] = row["h_nm"] * LJ_Z0_OVER_H
+                row["chi2"] = float(g["chi2_min"])
+                row["dof"] = int(g["dof"])
+                row["p_value"] = float(g.get("p_value", np.nan))
+            row["n_intervals_used"] = len(g.get("intervals_used", []))
+            if g.get("note"):
+                notes.append(str(g["note"]).strip())
+        ref = L.get("reference")
+        if ref is not None and g:
+            row["W_A_ref_mJ_per_m2"] = _mj(g.get("W_ref_at_h", np.nan))
+            pc = np.asarray(g.get("W_ref_at_h_pcts", [np.nan] * len(CI_PCTS)), float)
+            row["u_W_A_ref_mJ_per_m2"] = 0.5 * (_mj(pc[_I_84]) - _mj(pc[_I_16]))
+            row["W_A_ref_max_rel_change_over_h"] = float(ref["max_rel_change"])
+            if status != "ok":
+                notes.append(f"W_A_ref at h = {_nm(g.get('W_ref_h', np.nan)):.3g} nm (grid centre)")
+        crossings = [float(iv["h_cross"]) for iv in L["intervals"].values() if iv["status"] == "ok"]
+        row["n_intervals_crossing"] = len(crossings)
+        if crossings:
+            row["h_crossings_min_nm"] = _nm(min(crossings))
+            row["h_crossings_max_nm"] = _nm(max(crossings))
+        bad = [f"{nm}: {iv['status']}" for nm, iv in L["intervals"].items() if iv["status"] not in ("ok", "reference")]
+        if bad:
+            notes.append("intervals " + "; ".join(bad))
+        if law == "lj":
+            notes.append("L-J range in the z0 = h/0.974 convention")
+        if law == "tri2":
+            notes.append("h = Dugdale-equivalent (peak-stress) h; full range 2h in h_full_range_nm (paper Table 1 uses 2h)")
+        row["status"] = status
+        row["notes"] = " | ".join(n for n in notes if n)
+        rows.append(row)
+    return rows
+
+
+def write_summary(tip_range_h5s: dict, out_csv):
+    """results/summary.csv: one row per tip and traction law (like the paper's Table 1).
+
+    ``tip_range_h5s`` maps tip name -> stage-5 HDF5 (a list of paths is accepted too; the tip
+    name is then read from the files).
+    """
+    items = tip_range_h5s.items() if isinstance(tip_range_h5s, dict) else [(None, p) for p in tip_range_h5s]
+    rows = []
+    for tip, path in items:
+        rng = load_range(path)
+        if tip:
+            rng["tip"] = str(tip)
+        rows += summary_rows(rng)
+    _write_csv(out_csv, SUMMARY_COLUMNS, rows)
+    return rows

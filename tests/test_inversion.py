@@ -1,0 +1,219 @@
+"""Stage 4 (pipeline.inversion): W_A(h) per interval and law, Monte-Carlo, n < 2 policy.
+
+Reference numbers are computed here independently of pipeline.mechanics where possible
+(Eq. 12 closed form, Maugis relation lambda = 2 (9/(16 pi))^(1/3) Lambda for n = 2).
+"""
+import h5py
+import numpy as np
+import pytest
+
+from pipeline import mechanics as mech
+from pipeline.inversion import (
+    clip_n,
+    interp_loglog,
+    load_fit,
+    load_forces,
+    load_inversion,
+    mc_grid_index,
+    run_inversion,
+    write_synthetic_inputs,
+)
+
+H_GRID = np.geomspace(0.2e-9, 10e-9, 41)
+E_STAR = 120e9
+
+
+def _intervals(ns, R=30e-9, S=1.0, **extra):
+    out = [dict(name="i0", n=ns[0], R=R, S=S, reference=True)]
+    out += [dict(name=f"i{i}", n=n, R=R, S=S, **extra) for i, n in enumerate(ns[1:], 1)]
+    return out
+
+
+def _eq12_w(F, n, Q, h):
+    """Rigid Dugdale (Eq. 12) solved for W: W = F h^(1-2/n) / (pi (n Q)^(2/n))."""
+    return F * h ** (1 - 2 / n) / (np.pi * (n * Q) ** (2 / n))
+
+
+@pytest.fixture(scope="module")
+def paperlike(tmp_path_factory):
+    d = tmp_path_factory.mktemp("inv_paperlike")
+    fits, forces, cfg = write_synthetic_inputs(d, W_A=0.0467, h=4.6e-9, E_star=E_STAR, intervals=_intervals([2, 3, 4.5, 6]),
+                                               u_k=0.01, k=0.2, u_invols=1e-9, seed=5)
+    out = d / "inv.h5"
+    run_inversion(fits, forces, out, intervals=cfg, E_star=E_STAR, u_E_star=5e9, h_grid=H_GRID,
+                  laws=["dugdale", "tri2"], solver_mode="rigid", mc_samples=300, seed=11, tip="A")
+    return fits, forces, cfg, out
+
+
+def test_loaders_roundtrip(paperlike):
+    fits, forces, _, _ = paperlike
+    fit = load_fit(fits["i2"])
+    assert fit["n"] == pytest.approx(4.5, abs=0.1)
+    assert fit["R"] == pytest.approx(30e-9, rel=0.1)
+    assert fit["ln_Q"] == pytest.approx((fit["n"] - 1) * np.log(fit["R"]))
+    assert fit["cov_n_lnQ"].shape == (2, 2) and fit["u_n"] == pytest.approx(0.02)
+    fo = load_forces(forces["i2"])
+    assert fo["n_curves"] == 40 and fo["F_p_sem"] == pytest.approx(fo["F_p_std"] / np.sqrt(40))
+    assert fo["k"] == 0.2 and fo["u_k"] == 0.01 and fo["invols"] == 50e-9
+    assert fo["F_p_curves"].shape == (40,) and fo["accepted"].all()
+
+
+def test_clip_n_policy():
+    R, S = 30e-9, 1.0
+    assert clip_n(2.3, 1.3 * np.log(R), S, 0.02) == (2.3, 1.3 * np.log(R), "ok")
+    n, lq, flag = clip_n(1.97, 0.97 * np.log(R), S, 0.02)
+    assert flag == "n_clipped_to_2" and n == 2.0 and lq == pytest.approx(np.log(R))   # keeps R: Q(2) = R
+    # S != 1: ln Q = (n-2) ln S + (n-1) ln R  ->  clipped ln Q = ln R
+    S2 = 2.0
+    n, lq, flag = clip_n(1.98, -0.02 * np.log(S2) + 0.98 * np.log(R), S2, 0.01)
+    assert flag == "n_clipped_to_2" and lq == pytest.approx(np.log(R))
+    assert clip_n(1.5, 0.5 * np.log(R), S, 0.02)[2] == "n_below_2"
+    assert clip_n(25.0, 24 * np.log(R), S, 0.02)[2] == "n_above_20"
+
+
+def test_central_curve_is_eq12_in_rigid_mode(paperlike):
+    fits, forces, _, out = paperlike
+    inv = load_inversion(out)
+    for nm in ("i1", "i3"):
+        fit, fo = load_fit(fits[nm]), load_forces(forces[nm])
+        w = inv["intervals"][nm]["laws"]["dugdale"]["W_A"]
+        np.testing.assert_allclose(w, _eq12_w(fo["F_p_mean"], fit["n"], fit["Q"], inv["h"]), rtol=1e-9)
+    # reference: n_used >= 2, W_A independent of h only if n_used == 2
+    ref = inv["intervals"]["i0"]
+    if ref["n_flag"] == "n_clipped_to_2":
+        assert np.ptp(ref["laws"]["dugdale"]["W_A"]) / ref["laws"]["dugdale"]["W_A"][0] < 1e-12
+
+
+def test_outputs_and_units(paperlike):
+    *_, out = paperlike
+    with h5py.File(out, "r") as f:
+        assert f.attrs["stage"] == "inversion"
+        g = f["intervals/i2/dugdale"]
+        assert g["W_A"].attrs["units"] == "J/m^2"
+        assert g["W_A_samples"].shape == (300, f["h_grid_mc"].size)
+        for k in ("W_A_p16", "W_A_p50", "W_A_p84", "Lambda", "rigid_valid", "model_used", "mdn_fraction"):
+            assert k in g, k
+        assert set(g["model_used"].asstr()[()]) == {"rigid"}
+        assert "maugis_lambda" in f["intervals/i0/dugdale"] and "maugis_lambda" not in g
+        for name, ds in f.items():
+            if isinstance(ds, h5py.Dataset):
+                assert "units" in ds.attrs, name
+        p16, p84 = g["W_A_p16"][()], g["W_A_p84"][()]
+        assert np.all(p16 < g["W_A"][()]) and np.all(g["W_A"][()] < p84)
+
+
+def test_systematic_errors_are_shared(tmp_path):
+    """k/InvOLS/E* are drawn once per sample for the tip: with no statistical noise every
+    interval's W_A sample is its central value times the same calibration factor (rigid)."""
+    fits, forces, cfg = write_synthetic_inputs(tmp_path, W_A=0.05, h=3e-9, E_star=E_STAR, intervals=_intervals([2, 3, 5]),
+                                               rel_sd_curve=0.0, sigma_n=0.0, sigma_lnR=0.0, u_k=0.02, k=0.2,
+                                               u_invols=2e-9, perturb=False, seed=1)
+    out = tmp_path / "inv.h5"
+    run_inversion(fits, forces, out, intervals=cfg, E_star=E_STAR, u_E_star=10e9, h_grid=H_GRID,
+                  laws=["dugdale"], solver_mode="rigid", mc_samples=200, seed=3)
+    inv = load_inversion(out)
+    cal = inv["systematic"]["cal_factor"]
+    assert np.std(cal) == pytest.approx(np.hypot(0.1, 0.04), rel=0.2)
+    for nm in ("i0", "i1", "i2"):
+        d = inv["intervals"][nm]["laws"]["dugdale"]
+        np.testing.assert_allclose(d["W_A_samples"] / d["W_A"][None, :], np.repeat(cal[:, None], H_GRID.size, 1), rtol=1e-5)
+
+
+def test_seeded_and_reproducible(tmp_path, paperlike):
+    fits, forces, cfg, out = paperlike
+    kw = dict(intervals=cfg, E_star=E_STAR, u_E_star=5e9, h_grid=H_GRID, laws=["dugdale", "tri2"], solver_mode="rigid",
+              mc_samples=300, tip="A")
+    run_inversion(fits, forces, tmp_path / "a.h5", seed=11, **kw)
+    run_inversion(fits, forces, tmp_path / "b.h5", seed=12, **kw)
+    a, b, ref = (load_inversion(p)["intervals"]["i2"]["laws"]["dugdale"]["W_A_samples"] for p in (tmp_path / "a.h5", tmp_path / "b.h5", out))
+    np.testing.assert_array_equal(a, ref)
+    assert not np.allclose(a, b)
+
+
+@pytest.fixture(scope="module")
+def elastic(tmp_path_factory):
+    """W_A = 1 J/m^2, h = 0.5 nm, E* = 40 GPa, R = 10 nm: Lambda above Eq. 13 at the true h."""
+    d = tmp_path_factory.mktemp("inv_elastic")
+    fits, forces, cfg = write_synthetic_inputs(d, W_A=1.0, h=0.5e-9, E_star=40e9, intervals=_intervals([2, 4], R=10e-9),
+                                               perturb=False, rel_sd_curve=0.02, sigma_n=0.01, sigma_lnR=0.005, seed=2)
+    out = d / "inv.h5"
+    h = np.geomspace(0.1e-9, 5e-9, 90)
+    run_inversion(fits, forces, out, intervals=cfg, E_star=40e9, u_E_star=1e9, h_grid=h, laws=["dugdale"],
+                  solver_mode="auto", mc_samples=200, seed=1, mc_h_points=30)
+    return fits, forces, cfg, out
+
+
+def test_auto_mode_records_model_and_regime(elastic):
+    fits, forces, _, out = elastic
+    inv = load_inversion(out)
+    h = inv["h"]
+    d = inv["intervals"]["i1"]["laws"]["dugdale"]
+    used = np.asarray(d["model_used"]).astype(str)
+    j = int(np.argmin(abs(h - 0.5e-9)))
+    assert used[j] == "mdn"                                    # the full model at the true h
+    lam_b = -0.002194 * 16 + 0.067185 * 4 + 0.022056           # Eq. 13 at n = 4
+    np.testing.assert_allclose(d["Lambda_boundary"], lam_b, rtol=1e-9)
+    np.testing.assert_array_equal(d["rigid_valid"], d["Lambda"] < lam_b)
+    assert d["Lambda"][j] > lam_b
+    # central M-D-n W_A reproduces the measured pull-off (forward solve)
+    fit, fo = load_fit(fits["i1"]), load_forces(forces["i1"])
+    sel = used == "mdn"
+    F = mech.pulloff_force(fit["n"], fit["Q"], 40e9, d["W_A"][sel], h[sel], model="mdn", exact=True)
+    np.testing.assert_allclose(F, fo["F_p_mean"], rtol=1e-6)
+    # Maugis parameter for the n = 2 reference: lambda = 2 (9/(16 pi))^(1/3) Lambda
+    r = inv["intervals"]["i0"]["laws"]["dugdale"]
+    np.testing.assert_allclose(r["maugis_lambda"], 2 * (9 / (16 * np.pi)) ** (1 / 3) * r["Lambda"], rtol=1e-6)
+    assert np.all((d["mdn_fraction"] >= 0) & (d["mdn_fraction"] <= 1))
+
+
+def test_mc_grid_interpolation_is_accurate(elastic):
+    """MC samples are solved on a subset of the h grid and interpolated in (ln h, ln W)."""
+    fits, forces, _, out = elastic
+    inv = load_inversion(out)
+    h = inv["h"]
+    dr = inv["intervals"]["i1"]["draws"]
+    cal = inv["systematic"]["cal_factor"]
+    es = inv["systematic"]["E_star"]
+    s = slice(0, 20)
+    direct = mech.work_of_adhesion((dr["F_p_mean"] * cal)[s, None], dr["n"][s, None], np.exp(dr["ln_Q"])[s, None],
+                                   es[s, None], h[None, :], model="auto")
+    interp = inv["intervals"]["i1"]["laws"]["dugdale"]["W_A_samples"][s]
+    rel = np.abs(interp / direct - 1)
+    # away from the auto-mode switch (a <= 5 % step by design) interpolation is < 0.2 %
+    switch = np.abs(np.diff(np.log(direct), axis=1)).max(axis=0) > 0.02
+    near = np.zeros(h.size, bool)
+    near[:-1] |= switch
+    near[1:] |= switch
+    near = np.convolve(near, np.ones(7), "same") > 0
+    assert np.nanmax(rel[:, ~near]) < 2e-3
+
+
+def test_interp_helpers():
+    idx = mc_grid_index(200, 64)
+    assert idx[0] == 0 and idx[-1] == 199 and idx.size == 64
+    assert np.array_equal(mc_grid_index(40, 64), np.arange(40))
+    x = np.geomspace(1, 10, 5)
+    xf = np.geomspace(1, 10, 17)
+    np.testing.assert_allclose(interp_loglog(x, 3 * x**0.7, xf), 3 * xf**0.7, rtol=1e-12)   # power laws exact
+
+
+def test_n_below_2_does_not_crash(tmp_path):
+    ivs = _intervals([2, 4]) + [dict(name="bad", n=2.0, R=30e-9)]
+    fits, forces, cfg = write_synthetic_inputs(tmp_path, W_A=0.05, h=3e-9, E_star=E_STAR, intervals=ivs, perturb=False, seed=1)
+    with h5py.File(fits["bad"], "r+") as f:       # a fit far below 2: unusable, not a crash
+        f["fit/n"][()] = 1.6
+    out = tmp_path / "inv.h5"
+    run_inversion(fits, forces, out, intervals=cfg, E_star=E_STAR, u_E_star=0.0, h_grid=H_GRID, laws=["dugdale"],
+                  solver_mode="auto", mc_samples=50, seed=1)
+    inv = load_inversion(out)
+    assert inv["intervals"]["bad"]["n_flag"] == "n_below_2"
+    assert np.all(np.isnan(inv["intervals"]["bad"]["laws"]["dugdale"]["W_A"]))
+    assert inv["intervals"]["i1"]["n_flag"] == "ok"
+
+
+def test_bad_arguments(paperlike):
+    fits, forces, cfg, _ = paperlike
+    with pytest.raises(ValueError, match="traction law"):
+        run_inversion(fits, forces, "/tmp/x.h5", intervals=cfg, E_star=E_STAR, u_E_star=0, h_grid=H_GRID, laws=["foo"])
+    with pytest.raises(ValueError, match="solver_mode"):
+        run_inversion(fits, forces, "/tmp/x.h5", intervals=cfg, E_star=E_STAR, u_E_star=0, h_grid=H_GRID, solver_mode="x")
