@@ -1,0 +1,104 @@
+"""End to end: Snakemake on a small generated wear test (two tips, three intervals each).
+
+Checks the frame's promises: the run writes summary.csv with W_A and h per tip,
+a second dry run has nothing to do, touching one tip's YAML reruns that tip only,
+and a bad tip YAML fails before any job runs, naming the file and the key.
+"""
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pipeline.synth.wear_test import sample_tips, write_sample_bundle
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def small_tips():
+    a, b = sample_tips()
+    for t, n in ((a, [2.0, 3.8, 5.4]), (b, [2.0, 4.0, 5.8])):
+        t.n, t.scans, t.curves_per_interval = n, [0, 30, 100], 5
+    return [a, b]
+
+
+def snakemake(workdir: Path, *args):
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory", str(workdir),
+           "--configfile", str(workdir / "config.yaml"), "--cores", "2", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=workdir, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    work = tmp_path_factory.mktemp("wf")
+    write_sample_bundle(work / "data", config_dir=work / "tips", tips=small_tips())
+    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    cfg.update(tips_dir=str(work / "tips"), results_dir=str(work / "results"), monte_carlo={"samples": 300, "seed": 1})
+    cfg["h_grid"]["points"] = 120
+    (work / "config.yaml").write_text(yaml.safe_dump(cfg))
+    proc = snakemake(work)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return work
+
+
+def test_run_writes_summary_with_wa_and_h(finished_run):
+    with open(finished_run / "results" / "summary.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    tips = {r["tip"] for r in rows}
+    assert tips == {"tipA_DLC", "tipB_Si"}
+    truth = {t.name: t for t in small_tips()}
+    for r in rows:
+        if r["law"] != "dugdale":
+            continue
+        t = truth[r["tip"]]
+        # small test set (3 intervals, 5 curves): loose bounds; the accuracy tests are elsewhere
+        assert float(r["W_A_mJ_per_m2"]) == pytest.approx(t.W_A * 1e3, rel=0.08)
+        assert float(r["h_nm"]) == pytest.approx(t.h * 1e9, rel=0.2)
+    for t in truth:
+        assert (finished_run / "results" / t / "profiles" / "scan000.png").stat().st_size > 10_000
+        assert (finished_run / "results" / t / "W_A_vs_h.png").is_file()
+
+
+def test_second_dry_run_has_nothing_to_do(finished_run):
+    proc = snakemake(finished_run, "-n")
+    assert proc.returncode == 0, proc.stderr
+    assert "Nothing to be done" in proc.stdout + proc.stderr
+
+
+def test_touching_one_tip_reruns_that_tip_only(finished_run):
+    (finished_run / "tips" / "tipA_DLC.yaml").touch()
+    proc = snakemake(finished_run, "-n", "--printshellcmds")
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    planned = [line for line in out.splitlines() if line.strip().startswith("python -m pipeline")]
+    assert planned, out
+    assert any("tipA_DLC" in line for line in planned)
+    # tip B's jobs are not planned (only the cross-tip summary reads tip B's results)
+    assert not [line for line in planned if "tipB_Si" in line and " summary " not in line]
+
+
+@pytest.mark.parametrize(
+    "edit, needle",
+    [
+        (lambda c: c["cantilever"].update(spring_constant_method="given", spring_constant=0.9), "cantilever.spring_constant: 0.9 has no unit"),
+        (lambda c: c.update(colour="blue"), "'colour' was unexpected"),
+        (lambda c: c["intervals"][1].update(image="tem/missing.tif"), "intervals[1].image"),
+    ],
+)
+def test_bad_tip_yaml_fails_before_any_job(finished_run, tmp_path, edit, needle):
+    work = tmp_path
+    tips = work / "tips"
+    tips.mkdir()
+    cfg = yaml.safe_load((finished_run / "tips" / "tipB_Si.yaml").read_text())
+    edit(cfg)
+    (tips / "tipB_Si.yaml").write_text(yaml.safe_dump(cfg))
+    wf = yaml.safe_load((finished_run / "config.yaml").read_text())
+    wf.update(tips_dir=str(tips), results_dir=str(work / "results"))
+    (work / "config.yaml").write_text(yaml.safe_dump(wf))
+    proc = snakemake(work)
+    assert proc.returncode != 0
+    assert str(tips / "tipB_Si.yaml") in proc.stderr and needle in proc.stderr, proc.stderr[-2000:]
+    assert not (work / "results").exists()  # nothing ran, nothing written
