@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from scipy.optimize import curve_fit
-from scipy.signal import welch
 
 K_B = 1.380649e-23  # J/K
 SHAPE_FACTOR = {"rectangular": 0.817, "v-shaped": 0.764}
@@ -49,6 +48,7 @@ def psd_from_series(t, x, nperseg=None):
     fs = 1.0 / float(np.median(np.diff(t)))
     n = x.size
     nperseg = int(nperseg or min(n, 2 ** max(8, int(np.log2(n / 32)))))
+    from scipy.signal import welch  # lazy: scipy.signal costs ~1 s to import
     f, P = welch(x - x.mean(), fs=fs, window="hann", nperseg=nperseg)
     return f, P, max(1, 2 * n // nperseg - 1)
 
