@@ -40,6 +40,7 @@ def cmd_profiles(a):
     run_profiles(
         iv["image_path"], a.out_h5, a.out_png,
         pixel_size=tip["tem"].get("pixel_size"), orientation=tip["tem"]["orientation"],
+        profile_height=tip["tem"]["profile_height"], coating=tip["tem"]["coating"],
         tip=tip["name"], interval=iv["name"],
     )
 

@@ -1,0 +1,244 @@
+"""TEM image -> apex profile z(r) of both flanks (SI metres).
+
+Tip frame: axis = line of symmetry of the two flanks between 0.15 and 1 x
+``profile_height`` above the apex (in-plane rotation up to about +-20 deg is
+corrected by working in this rotated frame, no image resampling); apex = where
+the silhouette crosses the axis; z = 0 there, increasing away from the sample;
+r = |x| measured from the axis.  Asymmetry = mean and RMS of r_right - r_left at
+equal z over the profile window.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.tem.edges import TipFrame, _Fail, flatten_background, initial_contour, locate_tip, refine_edges
+from pipeline.tem.errors import ApexAtBorderError, NoTipError
+from pipeline.tem.reading import TemImage
+
+__all__ = ["TipProfile", "extract_profile"]
+
+
+@dataclass
+class TipProfile:
+    """Silhouette and profile of one tip image; lengths in metres, angles in rad."""
+
+    pixel_size: float
+    pixel_size_source: str
+    orientation: str  # "down" or "up" as found
+    angle: float  # tilt of the tip axis from the image vertical (rad, counter-clockwise as
+    #               displayed with the apex pointing down; "up" images: after a vertical flip)
+    apex_px: np.ndarray  # (row, col) in the original image
+    axis_px: np.ndarray  # unit vector (drow, dcol) pointing up the tip body, original image
+    edge_px: np.ndarray  # (N, 2) refined silhouette points (row, col), original image
+    x: np.ndarray  # (N,) lateral tip coordinate (m), signed
+    z: np.ndarray  # (N,) height above the apex (m)
+    flank: np.ndarray  # (N,) -1 left, +1 right
+    profile_height: float
+    asymmetry_mean: float
+    asymmetry_rms: float
+    edge_model: dict = field(default_factory=dict)
+
+    def flank_rz(self, which):
+        """(r, z) of one flank ("left", "right") or "both", sorted by z, within profile_height."""
+        m = (self.z <= self.profile_height)
+        if which == "left":
+            m &= self.flank < 0
+        elif which == "right":
+            m &= self.flank > 0
+        r, z = np.abs(self.x[m]), self.z[m]
+        o = np.argsort(z, kind="stable")
+        return r[o], z[o]
+
+
+def _coating_hint(coating, px, path):
+    """"auto" -> None (detect), "none" -> 0, thickness (m or "1.5 nm") -> px."""
+    if coating is None or coating == "auto":
+        return None
+    if coating == "none":
+        return 0.0
+    if isinstance(coating, str):
+        from pipeline.units import parse_quantity
+
+        coating = parse_quantity(coating, "length", str(path))
+    return float(coating) / px if coating > 0 else 0.0
+
+
+def _fail(path, exc):
+    msg = str(exc)
+    if "apex touches" in msg:
+        return ApexAtBorderError(path, msg)
+    return NoTipError(path, msg)
+
+
+def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto") -> TipProfile:
+    """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc)."""
+    path = image.path or "<image>"
+    px = image.pixel_size
+    coat_hint = _coating_hint(coating, px, path)
+    hpx = profile_height / px
+    try:
+        coarse, flipped = locate_tip(image.data, 1.3 * hpx, orientation)
+    except _Fail as exc:
+        raise _fail(path, exc) from None
+    img = image.data[::-1] if flipped else image.data
+    H, W = img.shape
+    # window: bounding box of the tip within 1.3 x profile_height of the apex, + margins;
+    # grown where the outer contour runs into a window side (light coatings may be
+    # missing from the coarse mask)
+    ca = coarse.apex
+    th = coarse.angle
+    (br0, br1), (bc0, bc1) = coarse.bbox
+    m = dict(top=24, bottom=24, left=24, right=24)
+    grow = max(24, int(0.5 * hpx))
+    for _ in range(5):
+        r0, r1 = int(max(0, br0 - m["top"])), int(min(H, br1 + m["bottom"]))
+        c0, c1 = int(max(0, bc0 - m["left"])), int(min(W, bc1 + m["right"]))
+        win = img[r0:r1, c0:c1].astype(np.float64)
+        origin = np.array([r0, c0], float)
+        flat, noise = flatten_background(win)
+        level = _edge_level(flat, noise)
+        try:
+            cont = initial_contour(flat, level, ca - origin, smooth=2.0)
+        except _Fail as exc:
+            raise _fail(path, exc) from None
+        frame = TipFrame(ca - origin, th)
+        cont = _clip_height(cont, frame, 1.3 * hpx + 8)
+        hit = dict(bottom=r1 < H and (cont[:, 0] >= win.shape[0] - 1.5).any(),
+                   left=c0 > 0 and (cont[:, 1] <= 0.5).any(),
+                   right=c1 < W and (cont[:, 1] >= win.shape[1] - 1.5).any())
+        if not any(hit.values()):
+            break
+        for side, h in hit.items():
+            m[side] += grow if h else 0
+    if len(cont) < 10:
+        raise NoTipError(path, "no tip in the image (edge too short near the apex)")
+    _check_border(cont, win.shape, frame, hpx, path, r0, c0, H, W)
+
+    fit = refine_edges(win, cont, frame, coat_hint=coat_hint,
+                       frame_update=lambda p: _symmetry_frame(p, frame, hpx))
+    pts = fit.points[fit.good]
+    frame = _symmetry_frame(pts, frame, hpx)
+    x, z = frame.to_tip(pts)
+    keep = z <= 1.02 * hpx
+    pts, x, z = pts[keep], x[keep], z[keep]
+    flank = np.where(x < 0, -1, 1)
+    a_mean, a_rms = _asymmetry(x, z, hpx)
+
+    # back to original image coordinates
+    pts_img = pts + origin
+    apex_img = frame.apex + origin
+    axis = frame.u.copy()
+    angle = -frame.angle  # counter-clockwise as displayed (apex pointing down)
+    if flipped:
+        pts_img[:, 0] = image.data.shape[0] - 1 - pts_img[:, 0]
+        apex_img[0] = image.data.shape[0] - 1 - apex_img[0]
+        axis[0] = -axis[0]
+    return TipProfile(
+        pixel_size=px, pixel_size_source=image.source, orientation="up" if flipped else "down",
+        angle=float(angle), apex_px=apex_img, axis_px=axis, edge_px=pts_img,
+        x=x * px, z=z * px, flank=flank, profile_height=float(profile_height),
+        asymmetry_mean=a_mean * px, asymmetry_rms=a_rms * px,
+        edge_model=dict(k_outer_per_m=fit.k_outer / px, k_core_per_m=fit.k_core / px,
+                        coating_thickness=fit.coat_px * px, blur_sigma=fit.sigma_px * px,
+                        rms_intensity=fit.rms_intensity, n_points=int(len(pts)),
+                        n_rejected=int((~fit.good).sum())),
+    )
+
+
+def _edge_level(flat, noise, smooth=2.0):
+    """Iso-level just below the flattened background (= 1): 4 noise sigma of the
+    ``smooth``-px Gaussian-smoothed image, at least 2 %, so that it follows the
+    OUTER surface (lighter coating included)."""
+    return 1.0 - max(4.0 * noise / (2.0 * np.sqrt(np.pi) * smooth), 0.02)
+
+
+def _clip_height(cont, frame, hmax):
+    x, z = frame.to_tip(cont)
+    inside = z <= hmax
+    # keep the connected run around the lowest point
+    i0 = int(np.argmin(z))
+    lo = i0
+    while lo > 0 and inside[lo - 1]:
+        lo -= 1
+    hi = i0
+    while hi < len(z) - 1 and inside[hi + 1]:
+        hi += 1
+    return cont[lo: hi + 1]
+
+
+def _check_border(cont, shape, frame, hpx, path, r0, c0, H, W):
+    """Apex region must not touch the image border (window edges inside the image are fine)."""
+    x, z = frame.to_tip(cont)
+    near = z < 0.5 * hpx
+    rows, cols = cont[near, 0] + r0, cont[near, 1] + c0
+    if rows.size and (rows.max() >= H - 1.5 or cols.min() <= 0.5 or cols.max() >= W - 1.5 or rows.min() <= 0.5):
+        raise ApexAtBorderError(path, "apex touches the image border")
+
+
+def _flanks(x, z):
+    left, right = x < 0, x >= 0
+    out = []
+    for m in (left, right):
+        o = np.argsort(z[m])
+        out.append((z[m][o], np.abs(x[m][o])))
+    return out
+
+
+def _crossings(a, b, level):
+    """Values of ``a`` where the polyline (a_i, b_i) crosses b = level."""
+    d = b - level
+    i = np.nonzero((d[:-1] <= 0) != (d[1:] <= 0))[0]
+    w = d[i] / (d[i] - d[i + 1])
+    return a[i] + w * (a[i + 1] - a[i])
+
+
+def _extent(x, z, levels, max_gap=4.0):
+    """Left-most and right-most silhouette x at each height (NaN where not crossed twice,
+    or where the crossing falls in a gap > ``max_gap`` px between kept edge points)."""
+    seg = np.hypot(np.diff(x), np.diff(z)) <= max_gap
+    out = np.full((len(levels), 2), np.nan)
+    for k, lv in enumerate(levels):
+        d = z - lv
+        i = np.nonzero(((d[:-1] <= 0) != (d[1:] <= 0)) & seg)[0]
+        if i.size >= 2:
+            w = d[i] / (d[i] - d[i + 1])
+            c = x[i] + w * (x[i + 1] - x[i])
+            out[k] = c.min(), c.max()
+    return out
+
+
+def _symmetry_frame(pts, frame, hpx, iters=25, max_dev=np.radians(0.5)):
+    """Axis = line through the midpoints of the left/right silhouette at equal height
+    (0.3-1 x profile_height above the lowest point; damped updates of at most 3 deg,
+    at most ``max_dev`` from the starting (coarse, long-range) axis);
+    apex = lowest crossing of the silhouette with the axis."""
+    a0 = frame.angle
+    for _ in range(iters):
+        x, z = frame.to_tip(pts)
+        zz = np.linspace(0.3 * hpx, hpx, 40) + z.min()
+        ext = _extent(x, z, zz)
+        ok = np.isfinite(ext[:, 0])
+        if ok.sum() < 5:
+            break
+        mid = ext[ok].mean(axis=1)
+        slope, off = np.polyfit(zz[ok], mid, 1)
+        d_ang = float(np.clip(np.arctan(slope), -np.radians(3), np.radians(3)))
+        d_ang = float(np.clip(frame.angle + d_ang, a0 - max_dev, a0 + max_dev)) - frame.angle
+        frame = TipFrame(frame.to_image(off, 0.0), frame.angle + d_ang)
+        if abs(d_ang) < 1e-5 and abs(off) < 1e-3:
+            break
+    x, z = frame.to_tip(pts)
+    zc = _crossings(z, x, 0.0)
+    z0 = float(zc.min()) if zc.size else float(z.min())
+    return TipFrame(frame.to_image(0.0, z0), frame.angle)
+
+
+def _asymmetry(x, z, hpx):
+    (zl, rl), (zr, rr) = _flanks(x, z)
+    if zl.size < 3 or zr.size < 3:
+        return float("nan"), float("nan")
+    zz = np.linspace(0.05 * hpx, min(hpx, zl.max(), zr.max()), 50)
+    d = np.interp(zz, zr, rr) - np.interp(zz, zl, rl)
+    return float(d.mean()), float(np.sqrt((d**2).mean()))

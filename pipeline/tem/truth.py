@@ -1,0 +1,102 @@
+"""Compare an extracted profile with the known truth of a synthetic image (tests, benchmark)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.synth.tem_image import outer_radius
+
+__all__ = ["profile_errors", "force_errors"]
+
+
+def _true_tip_coords(edge_px, truth):
+    px = truth["pixel_size"]
+    th = math.radians(truth["rotation_deg"])
+    r_a, c_a = truth["apex_px"]
+    sgn = 1.0 if truth["orientation"] == "down" else -1.0
+    dx = (edge_px[:, 1] - c_a) * px
+    dy = sgn * (r_a - edge_px[:, 0]) * px
+    return dx * math.cos(th) + dy * math.sin(th), -dx * math.sin(th) + dy * math.cos(th)
+
+
+def profile_errors(profile, truth, height):
+    """Errors (m) of the extracted silhouette against the true outer surface, z <= height.
+
+    Returns dict: rms_normal (RMS shortest distance to the true meridian curve),
+    rms_r (RMS of |x| - r_true(z), points with z >= 0.5 nm where r(z) is well
+    defined), bias_normal (mean signed distance, + = outside), apex_dz, axis_deg.
+    """
+    x, z = _true_tip_coords(profile.edge_px, truth)
+    sel = z <= height
+    x, z = x[sel], z[sel]
+    if x.size == 0:
+        raise ValueError("no extracted edge points within the fit window")
+    # sample the meridian densely in z AND in r (flat apices: r(z) is steep near z = 0)
+    zt = np.linspace(0, height * 1.3, 20001)
+    rt = outer_radius(zt, truth["n"], truth["Q"], truth.get("cone_above", 25e-9))
+    rr = np.linspace(0, rt[-1], 20001)
+    zr = rr ** truth["n"] / (truth["n"] * truth["Q"])
+    ok = zr <= truth.get("cone_above", 25e-9)
+    zt, rt = np.concatenate([zt, zr[ok]]), np.concatenate([rt, rr[ok]])
+    o = np.argsort(zt)
+    zt, rt = zt[o], rt[o]
+    curve = np.concatenate([np.column_stack([-rt[::-1], zt[::-1]]), np.column_stack([rt, zt])])
+    d, idx = cKDTree(curve / 1e-9).query(np.column_stack([x, z]) / 1e-9)
+    d = d * 1e-9
+    rtrue = np.interp(z, zt, rt)
+    outside = np.abs(x) > rtrue
+    sd = np.where(outside, d, -d)
+    m = z >= 0.5e-9
+    dr = np.abs(x[m]) - rtrue[m]
+    ang = math.degrees(profile.angle)
+    return dict(rms_normal=float(np.sqrt(np.mean(d**2))), bias_normal=float(sd.mean()),
+                rms_r=float(np.sqrt(np.mean(dr**2))) if dr.size else float("nan"),
+                apex_dz=float(_true_tip_coords(profile.apex_px[None, :], truth)[1][0]),
+                axis_deg_err=float(ang - truth["rotation_deg"]))
+
+
+def force_errors(n_fit, Q_fit, truth, heights=np.linspace(1e-9, 6e-9, 11)):
+    """Relative error of the rigid Dugdale pull-off area pi (n h Q)^(2/n) (Eq. 12) vs truth, per h."""
+    from pipeline.fits import rigid_dugdale_area
+
+    f_fit = rigid_dugdale_area(n_fit, Q_fit, heights)
+    f_true = rigid_dugdale_area(truth["n"], truth["Q"], heights)
+    return f_fit / f_true - 1.0
+
+
+TIP_SHAPES = {2: 10e-9, 3: 15e-9, 4: 20e-9, 5: 22e-9, 6: 25e-9}  # n -> R (m), S = 1
+
+
+def evaluate_case(n, pixel_size, blur_sigma_px=1.0, edge_snr=20.0, rotation_deg=3.0, coating_thickness=0.0,
+                  orientation="down", seed=0, R=None, fit_height=6e-9, profile_height=20e-9, shape=None, **kw):
+    """Render a synthetic image with known truth, extract + fit; return the error metrics (SI)."""
+    import time
+
+    from pipeline.fits import fit_power_law
+    from pipeline.synth.tem_image import render_tem_image
+    from pipeline.tem.profiles import extract_profile
+    from pipeline.tem.reading import TemImage
+
+    R = R or TIP_SHAPES.get(int(round(n)), 20e-9)
+    Q = R ** (n - 1)
+    if shape is None:
+        side = int(np.clip(np.ceil(95e-9 / pixel_size / 32) * 32, 384, 1024))
+        shape = (side, side)
+    img, truth = render_tem_image(n, Q, pixel_size, shape=shape, blur_sigma_px=blur_sigma_px, edge_snr=edge_snr,
+                                  rotation_deg=rotation_deg, coating_thickness=coating_thickness,
+                                  orientation=orientation, seed=seed, **kw)
+    t0 = time.perf_counter()
+    prof = extract_profile(TemImage(img.astype(np.float64), pixel_size, "synthetic"),
+                           profile_height=profile_height)
+    t_prof = time.perf_counter() - t0
+    r, z = prof.flank_rz("both")
+    m = prof.z <= prof.profile_height
+    groups = prof.flank[m][np.argsort(prof.z[m], kind="stable")]
+    fit = fit_power_law(r, z, fit_height, pixel_size=pixel_size, groups=groups)
+    pe = profile_errors(prof, truth, fit_height)
+    fe = force_errors(fit.n, fit.Q, truth)
+    return dict(truth=truth, profile=prof, fit=fit, t_profile=t_prof, rms_normal=pe["rms_normal"],
+                rms_r=pe["rms_r"], bias=pe["bias_normal"], apex_dz=pe["apex_dz"], axis_deg_err=pe["axis_deg_err"],
+                dn=fit.n - n, force_err_max=float(np.max(np.abs(fe))), sigma_n=fit.sigma_n, flags=fit.flags)

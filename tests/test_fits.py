@@ -1,0 +1,124 @@
+"""Power-law fit (Eq. 1, 2): exact recovery, SI units, covariance calibration, flags, stage files."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from pipeline import h5io
+from pipeline.fits import FitError, fit_power_law, plot_tip_fits, read_fit, rigid_dugdale_area, run_fit
+
+NM = 1e-9
+
+
+def _profile(n, R, S=1.0, z0=0.0, h=8e-9, npts=200, noise=0.0, seed=0):
+    Q = S ** (n - 2) * R ** (n - 1)
+    rmax = (n * Q * h) ** (1 / n)
+    r = np.linspace(0, rmax, npts)
+    z = z0 + r**n / (n * Q)
+    rng = np.random.default_rng(seed)
+    if noise:
+        # noise along the normal of the profile
+        slope = r ** (n - 1) / Q
+        nrm = np.hypot(1, slope)
+        e = rng.normal(0, noise, r.size)
+        r = r - e * slope / nrm
+        z = z + e / nrm
+    return np.abs(r), z, Q
+
+
+@pytest.mark.parametrize("n,R,S", [(2.0, 10 * NM, 1.0), (3.3, 20 * NM, 1.0), (5.0, 10 * NM, 2.0), (6.0, 30 * NM, 1.0)])
+def test_exact_recovery(n, R, S):
+    r, z, Q = _profile(n, R, S, z0=0.3 * NM)
+    f = fit_power_law(r, z, 6 * NM, S=S)
+    assert f.n == pytest.approx(n, abs=1e-6)
+    assert f.Q == pytest.approx(Q, rel=1e-5)
+    assert f.ln_Q == pytest.approx(np.log(Q), abs=1e-5)
+    assert f.R == pytest.approx(R, rel=1e-5)  # Eq. 2
+    assert f.z0 == pytest.approx(0.3 * NM, abs=1e-14)
+    assert f.rms_residual < 1e-15 and f.fit_error_percent < 1e-6
+    assert f.z.max() <= 6 * NM and not f.flags
+
+
+def test_n2_Q_is_R():
+    r, z, Q = _profile(2.0, 15 * NM)
+    f = fit_power_law(r, z, 6 * NM)
+    assert f.Q == pytest.approx(15 * NM, rel=1e-6) and f.R == pytest.approx(15 * NM, rel=1e-6)
+
+
+def test_covariance_is_calibrated():
+    """Monte Carlo over noise realisations: scatter of (n, ln Q) matches the reported covariance."""
+    n, R = 4.0, 20 * NM
+    fits = [fit_power_law(*_profile(n, R, noise=0.05 * NM, seed=s)[:2], 6 * NM) for s in range(150)]
+    ns = np.array([f.n for f in fits])
+    lq = np.array([f.ln_Q for f in fits])
+    emp = np.cov(np.vstack([ns, lq]))
+    rep = np.mean([f.cov_n_lnQ for f in fits], axis=0)
+    assert np.sqrt(rep[0, 0]) == pytest.approx(np.sqrt(emp[0, 0]), rel=0.25)
+    assert np.sqrt(rep[1, 1]) == pytest.approx(np.sqrt(emp[1, 1]), rel=0.25)
+    corr_emp = emp[0, 1] / np.sqrt(emp[0, 0] * emp[1, 1])
+    corr_rep = rep[0, 1] / np.sqrt(rep[0, 0] * rep[1, 1])
+    assert corr_rep == pytest.approx(corr_emp, abs=0.05)
+    assert abs(np.mean(ns) - n) < 3 * np.std(ns) / np.sqrt(ns.size) + 0.01
+
+
+def test_flags():
+    r, z, _ = _profile(1.3, 10 * NM)
+    f = fit_power_law(r, z, 6 * NM)
+    assert "n_below_1.5" in f.flags
+    r, z, _ = _profile(3.0, 15 * NM, noise=1.0 * NM)
+    f = fit_power_law(r, z, 6 * NM, pixel_size=0.2 * NM)
+    assert "residual_above_pixel" in f.flags
+    with pytest.raises(FitError):
+        fit_power_law([1e-9, 2e-9], [0.0, 1e-9])
+
+
+def test_rigid_dugdale_area_n2_is_dmt():
+    assert rigid_dugdale_area(2.0, 10 * NM, 3 * NM) == pytest.approx(2 * np.pi * 10 * NM * 3 * NM)
+
+
+def _write_profile(path, r, z, flank, px=0.2 * NM):
+    with h5io.atomic_h5(path, stage="tem_profiles") as f:
+        g = h5io.create_group(f, "image")
+        h5io.write_dataset(g, "pixel_size", px, "m")
+        pg = h5io.create_group(f, "profile")
+        for name, m in (("left", flank < 0), ("right", flank > 0), ("combined", np.ones(r.size, bool))):
+            sg = h5io.create_group(pg, name)
+            h5io.write_dataset(sg, "r", r[m], "m")
+            h5io.write_dataset(sg, "z", z[m], "m")
+            if name == "combined":
+                h5io.write_dataset(sg, "flank", flank, "1")
+
+
+def test_run_fit_layout_and_plot(tmp_path):
+    paths = []
+    for i, (n, R) in enumerate([(2.0, 10 * NM), (4.5, 25 * NM)]):
+        r, z, Q = _profile(n, R, noise=0.03 * NM, seed=i)
+        flank = np.where(np.arange(r.size) % 2, 1, -1)
+        prof = tmp_path / f"p{i}.h5"
+        _write_profile(prof, r, z, flank)
+        out = tmp_path / f"f{i}.h5"
+        run_fit(prof, out, fit_height=6 * NM, S=1.0, tip="A", interval=f"i{i}")
+        paths.append(out)
+        with h5py.File(out, "r") as f:
+            g = f["fit"]
+            units = {k: g[k].attrs["units"] for k in g}
+            assert units["n"] == "1" and units["ln_Q"] == "1" and units["R"] == "m" and units["z0"] == "m"
+            assert units["Q"] == f"m^{g['n'][()] - 1:.4g}" and units["fit_error_percent"] == "%"
+            assert g["cov_n_lnQ"].shape == (2, 2) and units["cov_n_lnQ"] == "1"
+            assert g["n"][()] == pytest.approx(n, abs=0.05)
+            assert "fit_left" in f and "fit_right" in f and f["fit_left/n"][()] == pytest.approx(n, abs=0.1)
+            assert f.attrs["stage"] == "fit"
+        assert read_fit(out).n == pytest.approx(n, abs=0.05)
+    plot_tip_fits(paths, tmp_path / "fits.png", labels=["initial", "worn"])
+    assert (tmp_path / "fits.png").stat().st_size > 1000
+
+
+def test_run_fit_errors_name_file(tmp_path):
+    with pytest.raises(ValueError, match="nope.h5"):
+        run_fit(tmp_path / "nope.h5", tmp_path / "o.h5")
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"not hdf5")
+    with pytest.raises(ValueError, match=r"bad\.h5.*unreadable"):
+        run_fit(bad, tmp_path / "o.h5")
+    assert not (tmp_path / "o.h5").exists()
