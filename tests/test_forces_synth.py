@@ -7,7 +7,7 @@ from pipeline.forces.contact_slope import invols_from_curves
 from pipeline.forces.pulloff import detect_pulloff
 from pipeline.forces.reading import read_curves
 from pipeline.forces.stage import run_forces
-from pipeline.forces.statistics import interval_stats, modified_z_scores
+from pipeline.forces.statistics import generalized_esd, interval_stats, modified_z_scores
 from pipeline.synth.force_curves import make_force_curve, write_curve_csv
 
 
@@ -96,3 +96,35 @@ def test_stage_end_to_end(tmp_path):
         assert f["interval/u_F_p_calibration"][()] == pytest.approx(f["interval/F_p_mean"][()] * np.hypot(0.05, 0.02), rel=1e-6)
         np.testing.assert_allclose(f["curves/delta_m"][()], f["curves/delta_V"][()] * invols)
         assert f["curves/delta_V"].attrs["units"] == "V" and f["curves/F_p"].attrs["units"] == "N"
+
+
+NIST_ESD_DATA = [
+    -0.25, 0.68, 0.94, 1.15, 1.20, 1.26, 1.26, 1.34, 1.38, 1.43, 1.49, 1.49, 1.55, 1.56, 1.58, 1.65, 1.69, 1.70,
+    1.76, 1.77, 1.81, 1.91, 1.94, 1.96, 1.99, 2.06, 2.09, 2.10, 2.14, 2.15, 2.23, 2.24, 2.26, 2.35, 2.37, 2.40,
+    2.47, 2.54, 2.62, 2.64, 2.90, 2.92, 2.92, 2.93, 3.21, 3.26, 3.30, 3.59, 3.68, 4.30, 4.64, 5.34, 5.42, 6.01,
+]
+
+
+def test_generalized_esd_nist_example():
+    # NIST/SEMATECH e-Handbook 1.3.5.17.3 (Rosner's test, up to 10 outliers, alpha = 0.05): 3 outliers
+    out = generalized_esd(NIST_ESD_DATA, alpha=0.05, max_outliers=10)
+    assert sorted(np.asarray(NIST_ESD_DATA)[out]) == [5.34, 5.42, 6.01]
+
+
+def test_esd_false_alarm_rate_small_intervals():
+    # 8 curves with pure Gaussian scatter: ESD flags an interval with probability ~alpha,
+    # the MAD rule far more often (the reason ESD is the default).
+    rng = np.random.default_rng(3)
+    draws = rng.normal(10.0, 0.3, size=(2000, 8))
+    esd = np.mean([generalized_esd(d).any() for d in draws])
+    mad = np.mean([(np.abs(modified_z_scores(d)) > 3.5).any() for d in draws])
+    assert 0.02 < esd < 0.08
+    assert mad > 2 * esd
+
+
+def test_outlier_rule_choice():
+    x = np.array([10.0, 10.1, 9.9, 10.05, 9.95, 10.0, 14.0])
+    for rule in ("esd", "modified_z"):
+        assert interval_stats(x, np.ones(7, bool), rule=rule).outlier.tolist() == [False] * 6 + [True]
+    with pytest.raises(ValueError, match="unknown outlier rule"):
+        interval_stats(x, np.ones(7, bool), rule="grubbs")

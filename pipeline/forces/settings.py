@@ -20,7 +20,9 @@ READER_DEFAULTS = {
     "pulloff_method": "fit",  # fit: line through the last contact points; min: raw minimum
     "pulloff_fit_points": 20,
     "min_pulloff_snr": 5.0,  # Delta must exceed this many baseline-noise rms
-    "outlier_z": 3.5,  # modified z-score threshold (Iglewicz & Hoaglin)
+    "outlier_rule": "esd",  # esd: generalized ESD (Rosner 1983) | modified_z (Iglewicz & Hoaglin)
+    "outlier_alpha": 0.05,  # significance of the ESD test
+    "outlier_z": 3.5,  # modified z-score threshold (rule modified_z)
 }
 
 CANTILEVER_DEFAULTS = {

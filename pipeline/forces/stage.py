@@ -33,7 +33,10 @@ from pipeline.forces.settings import CANTILEVER_DEFAULTS, READER_DEFAULTS, resol
 from pipeline.forces.statistics import interval_stats
 from pipeline.h5io import atomic_h5, create_group, write_dataset
 
-OUTLIER_RULE = "modified z-score 0.6745 |x - median| / MAD > outlier_z over accepted curves (none flagged if n < 3 or MAD = 0)"
+OUTLIER_RULES = {
+    "esd": "generalized ESD test (Rosner 1983) at significance outlier_alpha over accepted curves, up to floor(n/3) outliers (none if n < 3)",
+    "modified_z": "modified z-score 0.6745 |x - median| / MAD > outlier_z over accepted curves (none flagged if n < 3 or MAD = 0)",
+}
 MEAN_RULE = "mean, std (ddof=1) and sem over accepted non-outlier curves"
 
 
@@ -96,11 +99,11 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
                 col[k][i] = v
     F_p = cal.k * col["delta_m"]
     u_F_stat = cal.k * col["u_delta_m"]
-    st = interval_stats(F_p, accepted, reader["outlier_z"])
+    st = interval_stats(F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"])
     used = accepted & ~st.outlier
     u_cal_rel = cal.u_factor_rel if np.isfinite(cal.invols) else cal.u_k_rel
 
-    with atomic_h5(out_h5, stage="forces", tip=tip, interval=interval, outlier_rule=OUTLIER_RULE, mean_rule=MEAN_RULE,
+    with atomic_h5(out_h5, stage="forces", tip=tip, interval=interval, outlier_rule=OUTLIER_RULES[reader["outlier_rule"]], mean_rule=MEAN_RULE,
                    reader_config={k: v for k, v in reader.items()}, cantilever_config={k: v for k, v in cant.items()}) as f:
         g = create_group(f, "curves", "NXcollection")
         write_dataset(g, "file", [r["file"] for r in rows], "1", "curve file (#i: i-th curve of a map)")
@@ -142,7 +145,7 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
             for name, (val, unit, desc) in items.items():
                 write_dataset(sub, name, val, unit, desc)
 
-        iv = create_group(f, "interval", "NXcollection", outlier_rule=OUTLIER_RULE, mean_rule=MEAN_RULE)
+        iv = create_group(f, "interval", "NXcollection", outlier_rule=OUTLIER_RULES[reader["outlier_rule"]], mean_rule=MEAN_RULE)
         for name, val, unit, desc in (
                 ("F_p_mean", st.mean, "N", MEAN_RULE), ("F_p_std", st.std, "N", "standard deviation (ddof=1; NaN if 1 curve)"),
                 ("F_p_sem", st.sem, "N", "standard error of the mean (statistical part)"),
