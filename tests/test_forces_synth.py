@@ -116,10 +116,11 @@ def test_esd_false_alarm_rate_small_intervals():
     # the MAD rule far more often (the reason ESD is the default).
     rng = np.random.default_rng(3)
     draws = rng.normal(10.0, 0.3, size=(2000, 8))
-    esd = np.mean([generalized_esd(d).any() for d in draws])
+    esd05 = np.mean([generalized_esd(d, 0.05).any() for d in draws])
+    esd01 = np.mean([generalized_esd(d, 0.01).any() for d in draws])
     mad = np.mean([(np.abs(modified_z_scores(d)) > 3.5).any() for d in draws])
-    assert 0.02 < esd < 0.08
-    assert mad > 2 * esd
+    assert 0.03 < esd05 < 0.10 and 0.005 < esd01 < 0.03
+    assert mad > 2 * esd05
 
 
 def test_outlier_rule_choice():

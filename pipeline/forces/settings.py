@@ -21,7 +21,7 @@ READER_DEFAULTS = {
     "pulloff_fit_points": 20,
     "min_pulloff_snr": 5.0,  # Delta must exceed this many baseline-noise rms
     "outlier_rule": "esd",  # esd: generalized ESD (Rosner 1983) | modified_z (Iglewicz & Hoaglin)
-    "outlier_alpha": 0.05,  # significance of the ESD test
+    "outlier_alpha": 0.01,  # significance of the ESD test (a curve is dropped only on strong evidence)
     "outlier_z": 3.5,  # modified z-score threshold (rule modified_z)
 }
 
