@@ -1,4 +1,5 @@
 # Shared setup: validate every config before any job runs, list tips and intervals.
+import json
 from pathlib import Path
 
 import yaml
@@ -43,3 +44,28 @@ def interval_cfg(wildcards):
 
 def tip_yaml(wildcards):
     return TIP_FILES[wildcards.tip]
+
+
+# What each stage reads from a tip's YAML (after unit conversion).  Rules carry it as a
+# `settings` param instead of taking the YAML as an input: Snakemake's params trigger
+# then reruns exactly the stages whose settings changed (editing `cantilever:` reruns
+# forces -> inversion -> range, not profiles or fits), and other tips not at all.
+STAGE_KEYS = {
+    "profiles": ("tem", ("pixel_size", "orientation", "profile_height", "coating")),
+    "fits": ("tem", ("fit_height", "S")),
+    "forces": (None, ("cantilever", "force_curves")),
+    "inversion": (None, ("materials", "reference_intervals")),
+}
+
+
+def stage_settings(stage):
+    def settings(wildcards):
+        tip = TIPS[wildcards.tip]
+        section, keys = STAGE_KEYS[stage]
+        src = tip[section] if section else tip
+        picked = {k: src.get(k) for k in keys}
+        if stage == "inversion":
+            picked["intervals"] = [(iv["name"], iv["scans"]) for iv in tip["intervals"]]
+        return json.dumps(picked, sort_keys=True, default=str)
+
+    return settings

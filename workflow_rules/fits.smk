@@ -6,15 +6,17 @@ rule fits:
         CONDA_ENV
     input:
         profile=f"{RESULTS}/{{tip}}/profiles/{{interval}}.h5",
-        tip=tip_yaml,
     output:
         h5=f"{RESULTS}/{{tip}}/fits/{{interval}}.h5",
+    params:
+        tip=tip_yaml,
+        settings=stage_settings("fits"),
     log:
         f"{RESULTS}/logs/{{tip}}/fits/{{interval}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{tip}}/fits/{{interval}}.tsv"
     shell:
-        "python -m pipeline fit --tip-config {input.tip} --interval {wildcards.interval}"
+        "python -m pipeline fit --tip-config {params.tip} --interval {wildcards.interval}"
         " --profile-h5 {input.profile} --out-h5 {output.h5} > {log} 2>&1"
 
 
