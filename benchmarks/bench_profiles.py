@@ -6,7 +6,8 @@ Prints one row per image: pixel size, blur, edge SNR, coating, n, rotation ->
 RMS profile error (orthogonal distance to the true outer surface over the 6 nm
 fit window), RMS r(z) error (z >= 0.5 nm), |n_fit - n|, the max error of the
 rigid Dugdale pull-off (n h Q)^(2/n) (Eq. 12) over h = 1-6 nm, and the run
-time of the profile extraction; then the time for one 2048 x 2048 image.
+time of the profile extraction; then the bundled sample tip B (fitted n per
+interval) and the time for one 2048 x 2048 image.
 """
 from __future__ import annotations
 
@@ -25,10 +26,59 @@ COATINGS = [0.0, 1.5e-9, 15e-9]  # none, native oxide (tip B), DLC (tip A)
 NS = [2.0, 3.0, 4.0, 6.0]
 
 
+def tip_b_images():
+    """The bundled sample tip B (``pipeline.synth.wear_test.sample_tips()[1]``: 0.2 nm px,
+    blur 1.2 px, SNR 15, 1.5 nm oxide, R = 10 nm, S = 2, contamination on the last
+    interval), re-rendered with the seeds drawn exactly as ``generate_tip`` draws them
+    (same images as data_samples/tipB_Si/tem); yields (name, image, truth)."""
+    from pipeline.synth.tem_image import render_tem_image
+    from pipeline.synth.wear_test import sample_tips
+
+    t = sample_tips()[1]
+    rng = np.random.default_rng(t.seed)
+    for i, (name, n) in enumerate(zip(t.interval_names(), t.n)):
+        rot = t.rotation_deg + rng.normal(0, 0.5)
+        seed = int(rng.integers(2**31))
+        img, truth = render_tem_image(n, t.Q(n), t.pixel_size, shape=(512, 512), blur_sigma_px=t.blur_sigma_px,
+                                      edge_snr=t.edge_snr, rotation_deg=rot, coating_thickness=t.coating,
+                                      orientation="down", seed=seed, S=t.S, contamination=(i == len(t.n) - 1))
+        # draws of the force curves of this interval (generate_tip order)
+        rng.standard_normal(t.curves_per_interval)
+        for _ in range(t.curves_per_interval):
+            rng.integers(2**31), rng.normal(0.0, 0.05), rng.normal(0.0, 2e5)
+        yield name, img, truth
+
+
+def bench_tip_b():
+    from pipeline.fits import fit_power_law
+    from pipeline.tem.profiles import extract_profile
+    from pipeline.tem.reading import TemImage
+    from pipeline.tem.truth import force_errors, profile_errors
+
+    print("\nsample tip B (0.2 nm px, blur 1.2 px, SNR 15, 1.5 nm oxide, R = 10 nm, S = 2)")
+    print(f"{'interval':>8} {'n':>5} {'n_fit':>6} {'sig_n':>6} | {'rmsN nm':>8} {'|dF|max%':>8} {'coat nm':>7} {'t s':>5}")
+    for name, img, truth in tip_b_images():
+        px = truth["pixel_size"]
+        t0 = time.perf_counter()
+        prof = extract_profile(TemImage(img.astype(np.float64), px, "synthetic"))
+        dt = time.perf_counter() - t0
+        r, z = prof.flank_rz("both")
+        m = prof.z <= prof.profile_height
+        groups = prof.flank[m][np.argsort(prof.z[m], kind="stable")]
+        fit = fit_power_law(r, z, 6e-9, pixel_size=px, groups=groups)
+        pe = profile_errors(prof, truth, 6e-9)
+        fe = np.max(np.abs(force_errors(fit.n, fit.Q, truth)))
+        print(f"{name:>8} {truth['n']:5.2f} {fit.n:6.3f} {fit.sigma_n:6.3f} | {pe['rms_normal'] * 1e9:8.3f} "
+              f"{100 * fe:8.2f} {prof.edge_model['coating_thickness'] * 1e9:7.2f} {dt:5.2f}", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="n = 2 and 4 only, two conditions")
+    ap.add_argument("--tip-b", action="store_true", help="only the sample tip B case")
     a = ap.parse_args(argv)
+    if a.tip_b:
+        return bench_tip_b()
     conds = CONDITIONS[1:3] if a.quick else CONDITIONS
     ns = [2.0, 4.0] if a.quick else NS
     print(f"{'px nm':>6} {'blur':>5} {'SNR':>5} {'coat nm':>7} {'n':>4} {'rot':>5} | {'rmsN nm':>8} {'rms_r nm':>8} "
@@ -50,6 +100,7 @@ def main(argv=None):
         print(f"\nsummary over {len(rows)} images: median rmsN {np.median(arr('rms_normal')) * 1e9:.3f} nm, "
               f"max {arr('rms_normal').max() * 1e9:.3f} nm; |dn| <= 0.1 in {np.mean(np.abs(arr('dn')) <= 0.1):.0%}; "
               f"|dF| <= 3 % in {np.mean(arr('force_err_max') <= 0.03):.0%}; median time {np.median(arr('t_profile')):.2f} s")
+    bench_tip_b()
     # one large image
     from pipeline.synth.tem_image import render_tem_image
     from pipeline.tem.profiles import extract_profile
