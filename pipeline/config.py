@@ -17,7 +17,7 @@ import jsonschema
 import numpy as np
 import yaml
 
-from pipeline.units import QuantityError, parse_quantity
+from pipeline.units import QuantityError, example_unit, parse_quantity
 
 SCHEMA_DIR = Path(__file__).with_name("schemas")
 TIP_SCHEMA = SCHEMA_DIR / "tip.schema.yaml"
@@ -91,7 +91,7 @@ def _error_message(err: jsonschema.ValidationError, root: dict) -> str:
     schema = _schema_at(root, err.absolute_path)
     if err.validator == "type" and "x-unit" in schema:
         kind = schema["x-unit"].replace("_", " ")
-        return f"{where}: {err.instance!r} has no unit; write a {kind} with its unit, e.g. '{err.instance} {_unit_hint(schema['x-unit'])}'"
+        return f"{where}: {err.instance!r} has no unit; write a {kind} with its unit, e.g. '{err.instance} {example_unit(schema['x-unit'])}'"
     if err.validator == "pattern" and "x-unit" in schema:
         return f"{where}: {err.instance!r} is not '<number> <unit>' (a {schema['x-unit'].replace('_', ' ')})"
     if err.validator == "additionalProperties":
@@ -102,22 +102,6 @@ def _error_message(err: jsonschema.ValidationError, root: dict) -> str:
     if err.validator == "enum":
         return f"{where}: {err.instance!r} is not one of {err.validator_value}"
     return f"{where}: {err.message}"
-
-
-def _unit_hint(kind: str) -> str:
-    return {
-        "length": "nm",
-        "pressure": "GPa",
-        "stiffness": "N/m",
-        "sensitivity": "nm/V",
-        "energy_per_area": "mJ/m^2",
-        "temperature": "K",
-        "angle": "deg",
-        "force": "nN",
-        "voltage": "V",
-        "frequency": "kHz",
-        "time": "s",
-    }.get(kind, "<unit>")
 
 
 def validate(instance: dict, schema: dict, source) -> None:

@@ -60,7 +60,7 @@ def parse_quantity(text, kind: str, where: str = "") -> float:
     if isinstance(text, (int, float)):
         if kind == "angle":
             raise QuantityError(f"{loc}angle needs a unit ('deg' or 'rad'), got bare number {text!r}")
-        unit = _example(kind).split(" ", 1)[1]
+        unit = example_unit(kind)
         raise QuantityError(f"{loc}bare number {text!r} has no unit; write it with a unit of {kind.replace('_', ' ')}, e.g. '{text} {unit}'")
     m = _NUMBER_UNIT.match(text)
     if not m or not m.group(4):
@@ -94,6 +94,11 @@ def _example(kind: str) -> str:
         "time": "1 s",
         "frequency": "70 kHz",
     }.get(kind, "1 unit")
+
+
+def example_unit(kind: str) -> str:
+    """A typical unit for a quantity kind, for messages ("nm" for "length")."""
+    return _example(kind).split(" ", 1)[1]
 
 
 def to_unit(value_si: float, unit: str) -> float:
