@@ -23,5 +23,7 @@ rule all:
         f"{RESULTS}/rigid_laws.png",
         expand(f"{RESULTS}/{{tip}}/{{tip}}_report.csv", tip=TIPS),
         expand(f"{RESULTS}/{{tip}}/fits.png", tip=TIPS),
+        expand(f"{RESULTS}/{{tip}}/W_A_vs_h.png", tip=TIPS),
+        expand(f"{RESULTS}/{{tip}}/adhesion_map.png", tip=TIPS),
         [f"{RESULTS}/{t}/forces/{iv}.png" for t in TIPS for iv in INTERVALS[t]],
     default_target: True

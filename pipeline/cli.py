@@ -5,7 +5,8 @@
     python -m pipeline fit-figure --tip-config ... --out-png ... FIT_H5...
     python -m pipeline forces    --tip-config ... --interval ... --out-h5 ... --out-png ...
     python -m pipeline inversion --tip-config ... --workflow-config ... --fits DIR --forces DIR --out-h5 ...
-    python -m pipeline adhesion-range --tip-config ... --inversion-h5 ... --out-h5 ... --report-csv ... --fig-dir ...
+    python -m pipeline adhesion-range --tip-config ... --inversion-h5 ... --out-h5 ... --report-csv ...
+    python -m pipeline adhesion-figures --tip NAME --range-h5 ... --w-of-h-png ... --adhesion-map-png ...
     python -m pipeline summary   --out-csv results/summary.csv RANGE_H5...
     python -m pipeline validate  [--workflow-config config/config.yaml]
     python -m pipeline make-samples --out data_samples
@@ -99,6 +100,13 @@ def cmd_adhesion_range(a):
     run_adhesion_range(a.inversion_h5, a.out_h5, a.report_csv, a.fig_dir, tip=tip["name"])
 
 
+def cmd_adhesion_figures(a):
+    from pipeline.figures_adhesion import plot_adhesion_map, plot_w_of_h
+
+    plot_w_of_h(a.range_h5, a.w_of_h_png, tip=a.tip)
+    plot_adhesion_map(a.range_h5, a.adhesion_map_png, tip=a.tip)
+
+
 def cmd_summary(a):
     from pipeline.reports import write_summary
 
@@ -172,7 +180,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--inversion-h5", required=True)
     s.add_argument("--out-h5", required=True)
     s.add_argument("--report-csv", required=True)
-    s.add_argument("--fig-dir", required=True)
+    s.add_argument("--fig-dir", help="also draw W_A_vs_h.png and adhesion_map.png here")
+
+    s = stage("adhesion-figures", cmd_adhesion_figures, tip=False)
+    s.add_argument("--tip", default="")
+    s.add_argument("--range-h5", required=True)
+    s.add_argument("--w-of-h-png", required=True)
+    s.add_argument("--adhesion-map-png", required=True)
 
     s = stage("summary", cmd_summary, tip=False)
     s.add_argument("--out-csv", required=True)

@@ -1,4 +1,5 @@
-# Stage 5: where the worn tips' W_A(h) meet the paraboloidal reference (pipeline.adhesion_range).
+# Stage 5: where the worn tips' W_A(h) meet the paraboloidal reference (pipeline.adhesion_range),
+# and its figures (pipeline.figures_adhesion) as a separate job so the numbers never wait on plotting.
 
 
 rule adhesion_range:
@@ -8,16 +9,30 @@ rule adhesion_range:
         inversion=f"{RESULTS}/{{tip}}/inversion.h5",
     output:
         h5=f"{RESULTS}/{{tip}}/adhesion_range.h5",
-        csv=f"{RESULTS}/{{tip}}/{{tip}}_report.csv",
-        wa_h=report(f"{RESULTS}/{{tip}}/W_A_vs_h.png", category="4 Adhesion range", subcategory="{tip}"),
-        amap=report(f"{RESULTS}/{{tip}}/adhesion_map.png", category="4 Adhesion range", subcategory="{tip}"),
+        csv=report(f"{RESULTS}/{{tip}}/{{tip}}_report.csv", category="4 Adhesion range", subcategory="{tip}"),
     params:
         tip=tip_yaml,
-        fig_dir=lambda w: f"{RESULTS}/{w.tip}",
     log:
         f"{RESULTS}/logs/{{tip}}/adhesion_range.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{tip}}/adhesion_range.tsv"
     shell:
         "python -m pipeline adhesion-range --tip-config {params.tip} --inversion-h5 {input.inversion}"
-        " --out-h5 {output.h5} --report-csv {output.csv} --fig-dir {params.fig_dir} > {log} 2>&1"
+        " --out-h5 {output.h5} --report-csv {output.csv} > {log} 2>&1"
+
+
+rule adhesion_figures:
+    conda:
+        CONDA_ENV
+    input:
+        f"{RESULTS}/{{tip}}/adhesion_range.h5",
+    output:
+        wa_h=report(f"{RESULTS}/{{tip}}/W_A_vs_h.png", category="4 Adhesion range", subcategory="{tip}"),
+        amap=report(f"{RESULTS}/{{tip}}/adhesion_map.png", category="4 Adhesion range", subcategory="{tip}"),
+    log:
+        f"{RESULTS}/logs/{{tip}}/adhesion_figures.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{tip}}/adhesion_figures.tsv"
+    shell:
+        "python -m pipeline adhesion-figures --tip {wildcards.tip} --range-h5 {input}"
+        " --w-of-h-png {output.wa_h} --adhesion-map-png {output.amap} > {log} 2>&1"
