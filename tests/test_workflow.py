@@ -92,7 +92,7 @@ def test_editing_one_tip_reruns_only_its_affected_stages(finished_run):
         planned = planned_commands(finished_run)
         stages = {line.split()[3] for line in planned}
         # the calibration changed: forces and everything after it, for tip A only
-        assert stages == {"forces", "inversion", "adhesion-range", "summary"}, planned
+        assert stages == {"forces", "inversion", "adhesion-range", "adhesion-figures", "summary"}, planned
         assert not [line for line in planned if "tipB_Si" in line and " summary " not in line]
         assert sum(" forces " in line for line in planned) == 3  # tip A's three intervals
     finally:
