@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 CORES  ?= 2
 
-.PHONY: run test test-all samples bench lint clean
+.PHONY: run test test-all samples bench lint report clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,9 @@ samples: $(BIN)/.installed      ## regenerate data_samples/ and config/tips/ fro
 
 bench: $(BIN)/.installed        ## print the run-time vs error tables
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+report: $(BIN)/.installed       ## HTML report of a finished run (all figures and CSVs)
+	$(BIN)/snakemake --report results/report.html
 
 lint: $(BIN)/.installed
 	$(BIN)/snakemake --lint
