@@ -1,6 +1,6 @@
 """Accuracy and speed of the TEM profile + power-law fit stages on synthetic images.
 
-    .venv/bin/python benchmarks/bench_profiles.py [--quick]
+    .venv/bin/python benchmarks/bench_profiles.py [--quick] [--tip-b] [--refine normals|global]
 
 Prints one row per image: pixel size, blur, edge SNR, coating, n, rotation ->
 RMS profile error (orthogonal distance to the true outer surface over the 6 nm
@@ -72,11 +72,29 @@ def bench_tip_b():
               f"{100 * fe:8.2f} {prof.edge_model['coating_thickness'] * 1e9:7.2f} {dt:5.2f}", flush=True)
 
 
+def _use_refine(refine):
+    """Make every extract_profile call of this run use ``refine`` (evaluate_case imports it
+    from the module at call time)."""
+    import functools
+
+    import pipeline.tem.profiles as profiles
+
+    orig = getattr(profiles.extract_profile, "__wrapped_orig__", profiles.extract_profile)
+    wrapped = functools.partial(orig, refine=refine)
+    wrapped.__wrapped_orig__ = orig
+    profiles.extract_profile = wrapped
+    print(f"edge refinement: {refine}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="n = 2 and 4 only, two conditions")
     ap.add_argument("--tip-b", action="store_true", help="only the sample tip B case")
+    ap.add_argument("--refine", choices=("normals", "global"), default=None,
+                    help="edge refinement passed to extract_profile (default: its default)")
     a = ap.parse_args(argv)
+    if a.refine is not None:
+        _use_refine(a.refine)
     if a.tip_b:
         return bench_tip_b()
     conds = CONDITIONS[1:3] if a.quick else CONDITIONS

@@ -72,8 +72,15 @@ def _fail(path, exc):
     return NoTipError(path, msg)
 
 
-def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto") -> TipProfile:
-    """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc)."""
+def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto",
+                    refine="normals") -> TipProfile:
+    """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
+
+    ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
+    "global" (then one global fit of all edge pixels, ``silhouette_fit.refine_global``).
+    """
+    if refine not in ("normals", "global"):
+        raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
     path = image.path or "<image>"
     px = image.pixel_size
     coat_hint = _coating_hint(coating, px, path)
@@ -120,11 +127,27 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
                        frame_update=lambda p: _symmetry_frame(p, frame, hpx))
     pts = fit.points[fit.good]
     frame = _symmetry_frame(pts, frame, hpx)
+    extra = {}
+    asym_pts = None
+    if refine == "global":
+        from pipeline.tem.silhouette_fit import refine_global
+
+        try:
+            gf = refine_global(win, fit, frame, hpx, noise=noise, pixel_size=px)
+        except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # keep the per-normal edge
+            extra = dict(refine="normals", global_flags=[f"global refinement failed: {exc}"])
+        else:
+            asym_pts = pts  # the global model is axisymmetric: asymmetry from the per-normal edge
+            fit = gf.edge
+            pts = fit.points[fit.good]
+            frame = _symmetry_frame(pts, gf.frame, hpx)
+            extra = dict(refine="global", global_flags=list(gf.flags), global_chi2_red=gf.chi2_red,
+                         global_n_pixels=gf.n_pixels, global_iterations=gf.n_iter, global_stderr=gf.stderr)
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
     flank = np.where(x < 0, -1, 1)
-    a_mean, a_rms = _asymmetry(x, z, hpx)
+    a_mean, a_rms = _asymmetry(x, z, hpx) if asym_pts is None else _asymmetry(*frame.to_tip(asym_pts), hpx)
 
     # back to original image coordinates
     pts_img = pts + origin
@@ -143,7 +166,7 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
         edge_model=dict(k_outer_per_m=fit.k_outer / px, k_core_per_m=fit.k_core / px,
                         coating_thickness=fit.coat_px * px, blur_sigma=fit.sigma_px * px,
                         rms_intensity=fit.rms_intensity, n_points=int(len(pts)),
-                        n_rejected=int((~fit.good).sum())),
+                        n_rejected=int((~fit.good).sum()), **extra),
     )
 
 
