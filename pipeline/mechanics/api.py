@@ -129,6 +129,15 @@ def _x_auto(log_g, n, exact):
     return x, rig
 
 
+def _log_lambda(log_g, n, pot, mdl, exact):
+    """log Lambda from log G for the chosen model (rigid closed form, M-D-n table/solve, or auto)."""
+    if mdl == "rigid":
+        return _x_rigid(log_g, n, pot)
+    if mdl == "mdn":
+        return _x_mdn(log_g, n, exact)
+    return _x_auto(log_g, n, exact)[0]
+
+
 def lambda_from_g(G, n, potential="dugdale", model="mdn", exact=False):
     """Invert G = P~(n, Lambda) Lambda^((n+1)/n) for Lambda (vectorised, no per-point root finding)."""
     pot = V.potential(potential)
@@ -136,12 +145,7 @@ def lambda_from_g(G, n, potential="dugdale", model="mdn", exact=False):
     log_g, n = np.broadcast_arrays(np.log(V.positive("G", G)), V.exponent(n))
     log_g, n = log_g.ravel(), n.ravel().copy()
     shape = np.broadcast_shapes(np.shape(G), np.shape(n))
-    if mdl == "rigid":
-        x = _x_rigid(log_g, n, pot)
-    elif mdl == "mdn":
-        x = _x_mdn(log_g, n, exact)
-    else:
-        x, _ = _x_auto(log_g, n, exact)
+    x = _log_lambda(log_g, n, pot, mdl, exact)
     return _out(np.exp(_check_x(x)).reshape(shape))
 
 
@@ -160,13 +164,7 @@ def work_of_adhesion(F_p, n, Q, E_star, h, potential="dugdale", model="mdn", exa
     shape = n.shape
     F_p, n, Q, E_star, h = (a.ravel() for a in (F_p, n, Q, E_star, h))
     log_g = log_g_group(F_p, n, Q, E_star, h)
-    if mdl == "rigid":
-        x = _x_rigid(log_g, n, pot)
-    elif mdl == "mdn":
-        x = _x_mdn(log_g, n, exact)
-    else:
-        x, _ = _x_auto(log_g, n, exact)
-    x = _check_x(x)
+    x = _check_x(_log_lambda(log_g, n, pot, mdl, exact))
     return _out(work_from_lambda(x, n, Q, E_star, h).reshape(shape))
 
 
