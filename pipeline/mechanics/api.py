@@ -129,7 +129,7 @@ def _x_auto(log_g, n, exact):
     return x, rig
 
 
-def _log_lambda(log_g, n, pot, mdl, exact):
+def _log_lambda_from_g(log_g, n, pot, mdl, exact):
     """log Lambda from log G for the chosen model (rigid closed form, M-D-n table/solve, or auto)."""
     if mdl == "rigid":
         return _x_rigid(log_g, n, pot)
@@ -145,7 +145,7 @@ def lambda_from_g(G, n, potential="dugdale", model="mdn", exact=False):
     log_g, n = np.broadcast_arrays(np.log(V.positive("G", G)), V.exponent(n))
     log_g, n = log_g.ravel(), n.ravel().copy()
     shape = np.broadcast_shapes(np.shape(G), np.shape(n))
-    x = _log_lambda(log_g, n, pot, mdl, exact)
+    x = _log_lambda_from_g(log_g, n, pot, mdl, exact)
     return _out(np.exp(_check_x(x)).reshape(shape))
 
 
@@ -164,7 +164,7 @@ def work_of_adhesion(F_p, n, Q, E_star, h, potential="dugdale", model="mdn", exa
     shape = n.shape
     F_p, n, Q, E_star, h = (a.ravel() for a in (F_p, n, Q, E_star, h))
     log_g = log_g_group(F_p, n, Q, E_star, h)
-    x = _check_x(_log_lambda(log_g, n, pot, mdl, exact))
+    x = _check_x(_log_lambda_from_g(log_g, n, pot, mdl, exact))
     return _out(work_from_lambda(x, n, Q, E_star, h).reshape(shape))
 
 
