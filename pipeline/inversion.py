@@ -193,6 +193,10 @@ def lambda_boundary(n, mech=None):
     return -0.002194 * n**2 + 0.067185 * n + 0.022056
 
 
+# Stage-2 fit flags that make an interval unusable (its fit is not a trustworthy tip shape).
+UNUSABLE_FIT_FLAGS = frozenset({"n_below_1.5", "not_converged", "n_at_bound", "residual_above_pixel", "few_points"})
+
+
 def clip_n(n, ln_q, s, sigma_n=0.0):
     """Apply the n < 2 policy to a central (scalar) estimate.
 
@@ -449,6 +453,9 @@ def run_inversion(
     for i, nm in enumerate(names):
         fit, fo = fits[nm], forces[nm]
         n_c, lnq_c, n_flag = clip_n(fit["n"], fit["ln_Q"], fit["S"], fit["u_n"])
+        bad_fit = sorted(set(fit["flags"]) & UNUSABLE_FIT_FLAGS)
+        if bad_fit and n_flag in ("ok", "n_clipped_to_2"):
+            n_c, lnq_c, n_flag = np.nan, np.nan, "fit_flagged"  # flagged in stage 2: not silently used
         q_c = float(np.exp(lnq_c)) if np.isfinite(lnq_c) else np.nan
         dr = draw_interval(children[1 + i], fit, fo, S)
         if n_flag not in ("ok", "n_clipped_to_2"):
@@ -462,6 +469,8 @@ def run_inversion(
             notes.append("no statistical uncertainty of F_p (fewer than 2 curves): only calibration/fit/E* propagated")
         if n_flag == "n_clipped_to_2":
             notes.append(f"fitted n = {fit['n']:.4f} < 2 clipped to 2 keeping R")
+        if n_flag == "fit_flagged":
+            notes.append(f"power-law fit flagged {', '.join(bad_fit)}: interval not used (check its profile figure)")
         if np.any(dr["n_clipped"]):
             notes.append(f"{np.mean(dr['n_clipped']):.0%} of MC draws had n < 2 and were clipped to 2 keeping R")
         res = {"n_used": n_c, "ln_Q_used": lnq_c, "n_flag": n_flag, "draws": dr, "laws": {}, "notes": notes}

@@ -219,3 +219,26 @@ def test_ci_coverage_over_seeds(tmp_path):
         err.append(g["h"] / c["h"] - 1)
     assert np.mean(covered) >= 0.85
     assert abs(np.mean(err)) < 0.01 and np.sqrt(np.mean(np.square(err))) < 0.03
+
+
+def test_flagged_fit_is_not_silently_used(tmp_path):
+    """An interval whose stage-2 fit is flagged (here n at its bound) is reported unusable, with the flag named."""
+    import h5py
+
+    W, h, E, R = 0.0467, 4.6e-9, 120e9, 30e-9
+    ivs = [dict(name="s000", n=2.0, R=R, reference=True), dict(name="s020", n=4.0, R=R), dict(name="s040", n=6.0, R=R)]
+    fits, forces, cfg = write_synthetic_inputs(tmp_path, W_A=W, h=h, E_star=E, intervals=ivs, seed=3, **NOISE)
+    with h5py.File(fits["s020"], "r+") as f:
+        del f["fit/flags"]
+        f["fit"].create_dataset("flags", data=np.array(["n_at_bound"], dtype=object), dtype=h5py.string_dtype())
+        f["fit/flags"].attrs["units"] = "1"
+    inv = tmp_path / "inversion.h5"
+    run_inversion(fits, forces, inv, intervals=cfg, E_star=E, u_E_star=0.0, h_grid=np.geomspace(0.2e-9, 10e-9, 60),
+                  laws=["dugdale"], solver_mode="auto", mc_samples=200, seed=1, tip="T")
+    res = run_adhesion_range(inv, tmp_path / "range.h5", tmp_path / "T_report.csv", tip="T")
+    iv = res["dugdale"]["intervals"]
+    assert iv["s020"]["status"] == "unusable" and "fit_flagged" in iv["s020"]["note"]
+    assert iv["s040"]["status"] == "ok"
+    assert "s020" not in res["dugdale"]["global"]["intervals_used"]
+    with h5py.File(inv) as f:
+        assert "n_at_bound" in f["intervals/s020"].attrs["notes"]
