@@ -208,7 +208,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except (ValueError, OSError) as exc:  # our errors are ValueError subclasses naming the file
+    except (ValueError, OSError, RuntimeError) as exc:  # our errors name the file and the reason
         print(f"error ({args.cmd}): {exc}", file=sys.stderr)
         return 1
     return 0

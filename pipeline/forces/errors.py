@@ -1,14 +1,11 @@
 """Errors of the forces stage; every message names the file it is about."""
 from __future__ import annotations
 
+from pipeline.errors import FileError
 
-class ForceCurveError(ValueError):
+
+class ForceCurveError(FileError):
     """A force curve that cannot be read or analysed (``path``: file, ``reason``: why)."""
-
-    def __init__(self, path, reason: str):
-        self.path = str(path)
-        self.reason = reason
-        super().__init__(f"{self.path}: {reason}")
 
 
 class CalibrationError(ValueError):

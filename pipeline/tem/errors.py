@@ -1,14 +1,11 @@
 """Errors of the TEM stage: ``ValueError`` subclasses whose message names the file."""
 from __future__ import annotations
 
+from pipeline.errors import FileError
 
-class TemError(ValueError):
+
+class TemError(FileError):
     """Base class; ``str(err)`` is ``"<file>: <reason>"``."""
-
-    def __init__(self, path, reason: str):
-        self.path = str(path)
-        self.reason = reason
-        super().__init__(f"{self.path}: {reason}")
 
 
 class TemReadError(TemError):
