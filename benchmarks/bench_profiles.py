@@ -50,7 +50,7 @@ def tip_b_images():
 
 
 def bench_tip_b():
-    from pipeline.fits import fit_power_law
+    from pipeline.fits import fit_tip_profile
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import TemImage
     from pipeline.tem.truth import force_errors, profile_errors
@@ -62,10 +62,7 @@ def bench_tip_b():
         t0 = time.perf_counter()
         prof = extract_profile(TemImage(img.astype(np.float64), px, "synthetic"))
         dt = time.perf_counter() - t0
-        r, z = prof.flank_rz("both")
-        m = prof.z <= prof.profile_height
-        groups = prof.flank[m][np.argsort(prof.z[m], kind="stable")]
-        fit = fit_power_law(r, z, 6e-9, pixel_size=px, groups=groups)
+        fit = fit_tip_profile(prof, 6e-9)
         pe = profile_errors(prof, truth, 6e-9)
         fe = np.max(np.abs(force_errors(fit.n, fit.Q, truth)))
         print(f"{name:>8} {truth['n']:5.2f} {fit.n:6.3f} {fit.sigma_n:6.3f} | {pe['rms_normal'] * 1e9:8.3f} "

@@ -28,7 +28,7 @@ from scipy import optimize
 
 from pipeline import h5io
 
-__all__ = ["PowerLawFit", "FitError", "fit_power_law", "run_fit", "plot_tip_fits", "rigid_dugdale_area"]
+__all__ = ["PowerLawFit", "FitError", "fit_power_law", "fit_tip_profile", "run_fit", "plot_tip_fits", "rigid_dugdale_area"]
 
 N_BOUNDS = (1.05, 20.0)
 
@@ -55,6 +55,7 @@ class PowerLawFit:
     sigma_n: float = float("nan")
     sigma_lnQ: float = float("nan")
     flank: np.ndarray | None = None
+    edge_noise_fraction: float | None = None  # share of the residual variance explained by edge noise
 
     def z_model(self, r):
         """Fitted profile z(r) = z0 + |r|^n/(nQ) (m)."""
@@ -104,18 +105,41 @@ def _ess_factor(res, groups):
     return float(np.average(facs, weights=wts)) if facs else 1.0
 
 
-def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_scale=1e-9) -> PowerLawFit:
+def edge_covariance_of_params(jac, dres_doffset, basis, cov_c):
+    """Covariance of the fit parameters from the covariance of the edge itself.
+
+    The points' normal offsets are basis @ c with cov(c) = cov_c; a point moved along
+    its normal by d changes its residual by dres_doffset x d; the least-squares
+    parameters change by -(J^T J)^-1 J^T of that.  Returns (cov_p, predicted variance
+    of each point's normal offset).
+    """
+    A = np.linalg.solve(jac.T @ jac, jac.T)  # (P, N)
+    M = A @ (dres_doffset[:, None] * basis)  # (P, K)
+    var_pt = np.einsum("ij,jk,ik->i", basis, cov_c, basis)
+    return M @ cov_c @ M.T, var_pt
+
+
+def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_scale=1e-9,
+                  edge_basis=None, edge_cov=None, normal_rz=None) -> PowerLawFit:
     """Least-squares fit of z = z0 + |r|^n/(nQ) (Eq. 1) to points with z <= fit_height.
 
     r, z in m (r >= 0 measured from the axis, z from the profile's apex);
     ``groups`` labels points of separate flanks (ordered by z within each) for the
     correlation correction; ``pixel_size`` (m) for the residual flag.
+    Edge uncertainty (from the silhouette fit, optional): point i's normal offset is
+    edge_basis[i] @ c, cov(c) = edge_cov (m^2), normal_rz[i] its outward normal.  Then
+    cov(n, ln Q) = the propagated edge covariance + the residual covariance scaled by
+    the fraction of the residual variance the edge noise does not explain (shape
+    misfit).  Without it: residual covariance inflated by the residual autocorrelation.
     """
     r = np.abs(np.asarray(r, float))
     z = np.asarray(z, float)
     groups = np.zeros(r.size, int) if groups is None else np.asarray(groups)
     ok = np.isfinite(r) & np.isfinite(z) & (z <= fit_height)
     r, z, groups = r[ok], z[ok], groups[ok]
+    has_edge_cov = edge_basis is not None and edge_cov is not None and normal_rz is not None
+    if has_edge_cov:
+        edge_basis, normal_rz = np.asarray(edge_basis)[ok], np.asarray(normal_rz)[ok]
     flank = groups.copy()
     if r.size < 5:
         raise FitError(f"only {r.size} profile points below fit_height = {fit_height:.3g} m; cannot fit")
@@ -144,8 +168,16 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     s2 = float(e @ e) / dof
     J = res.jac
     flags = []
+    edge_part = None
     try:
         cov_p = np.linalg.inv(J.T @ J) * s2 * _ess_factor(e, groups)
+        if has_edge_cov:
+            _, fp = _model(res.x, rs, hs)
+            de = (normal_rz[:, 1] - fp * normal_rz[:, 0]) / np.sqrt(1.0 + fp**2)
+            cov_e, var_pt = edge_covariance_of_params(J, de, edge_basis, np.asarray(edge_cov) / sc**2)
+            explained = float(np.mean(var_pt)) / max(float(np.mean(e**2)), 1e-300)
+            edge_part = float(min(1.0, explained))
+            cov_p = cov_e + max(0.0, 1.0 - explained) * cov_p
     except np.linalg.LinAlgError:
         cov_p = np.full((3, 3), np.nan)
         flags.append("singular_covariance")
@@ -171,7 +203,18 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
                        cov_n_lnQ=cov2, rms_residual=rms, fit_error_percent=100.0 * rms / h,
                        fit_height=h, r=r, z=z, flags=flags,
                        sigma_n=float(np.sqrt(cov2[0, 0])), sigma_lnQ=float(np.sqrt(cov2[1, 1])),
-                       flank=flank)
+                       flank=flank, edge_noise_fraction=edge_part)
+
+
+def fit_tip_profile(profile, fit_height=6e-9, S=1.0, which="both") -> PowerLawFit:
+    """``fit_power_law`` on a ``pipeline.tem.profiles.TipProfile`` (one flank or both),
+    with its edge covariance when the silhouette fit provided one."""
+    i = profile.flank_index(which)
+    edge = {}
+    if profile.offset_basis is not None:
+        edge = dict(edge_basis=profile.offset_basis[i], edge_cov=profile.offset_cov, normal_rz=profile.normal_rz[i])
+    return fit_power_law(np.abs(profile.x[i]), profile.z[i], fit_height, S, pixel_size=profile.pixel_size,
+                         groups=profile.flank[i] if which == "both" else None, **edge)
 
 
 # ----------------------------------------------------------------------------- stage
@@ -184,8 +227,13 @@ def _read_profile(profile_h5):
         with h5py.File(path, "r") as f:
             g = f["profile"]
             out = {}
+            cov = g["offset_cov"][()] if "offset_cov" in g else None
             for name in ("left", "right", "combined"):
-                out[name] = (g[name]["r"][()], g[name]["z"][()])
+                sg = g[name]
+                edge = None
+                if cov is not None and "offset_basis" in sg:
+                    edge = dict(edge_basis=sg["offset_basis"][()], edge_cov=cov, normal_rz=sg["normal_rz"][()])
+                out[name] = (sg["r"][()], sg["z"][()], edge)
             out["flank"] = g["combined"]["flank"][()]
             px = float(f["image"]["pixel_size"][()])
             return out, px
@@ -204,6 +252,10 @@ def _write_fit(group, fit: PowerLawFit):
     w(group, "S", fit.S, "1", "steepness S of Eq. 2")
     w(group, "z0", fit.z0, "m", "fitted apex offset")
     w(group, "cov_n_lnQ", fit.cov_n_lnQ, "1", "covariance of (n, ln Q)")
+    if fit.edge_noise_fraction is not None:
+        w(group, "edge_noise_fraction", fit.edge_noise_fraction, "1",
+          "share of the residual variance explained by the silhouette fit's edge noise "
+          "(cov = propagated edge covariance + (1 - share) x residual covariance)")
     w(group, "rms_residual", fit.rms_residual, "m", "RMS orthogonal residual")
     w(group, "fit_error_percent", fit.fit_error_percent, "%", "100 x RMS residual / fit_height")
     w(group, "fit_height", fit.fit_height, "m", "fit window above the apex")
@@ -225,10 +277,10 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
     prof, px = _read_profile(profile_h5)
     fits = {}
     for name in ("combined", "left", "right"):
-        r, z = prof[name]
+        r, z, edge = prof[name]
         try:
             fits[name] = fit_power_law(r, z, fit_height, S, pixel_size=px,
-                                       groups=prof["flank"] if name == "combined" else None)
+                                       groups=prof["flank"] if name == "combined" else None, **(edge or {}))
         except FitError as exc:
             if name == "combined":
                 raise FitError(f"{profile_h5}: {exc}") from None

@@ -122,3 +122,44 @@ def test_run_fit_errors_name_file(tmp_path):
     with pytest.raises(ValueError, match=r"bad\.h5.*unreadable"):
         run_fit(bad, tmp_path / "o.h5")
     assert not (tmp_path / "o.h5").exists()
+
+
+def test_edge_covariance_propagation_matches_monte_carlo():
+    """cov(n, ln Q) propagated from a B-spline edge covariance (as the silhouette fit
+    reports it) agrees with refitting 300 edges drawn from that covariance."""
+    from pipeline.tem.silhouette_fit import _bspline
+
+    n, R = 4.0, 20 * NM
+    Q = R ** (n - 1)
+    r = np.linspace(0, 35 * NM, 40001)
+    z = r**n / (n * Q)
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(r), np.diff(z)))])
+    so = np.arange(0, s[-1], 0.25 * NM)
+    rr, zz = np.interp(so, s, r), np.interp(so, s, z)
+    t = np.gradient(np.column_stack([rr, zz]), axis=0)
+    t /= np.hypot(*t.T)[:, None]
+    nrm = np.column_stack([t[:, 1], -t[:, 0]])  # outward (n_r, n_z)
+    knot = 1.2 * NM
+    S = np.concatenate([-so[::-1], so])  # left flank, right flank
+    kc = np.arange(int(S.min() / knot) - 2, int(S.max() / knot) + 3)
+    B = _bspline(S[:, None] / knot - kc[None, :])
+    cov_c = np.diag(np.full(kc.size, (0.04 * NM) ** 2))
+    R_ = np.concatenate([rr[::-1], rr])
+    Z_ = np.concatenate([zz[::-1], zz])
+    N_ = np.vstack([nrm[::-1], nrm])
+    fl = np.concatenate([-np.ones(so.size), np.ones(so.size)])
+    fit0 = fit_power_law(R_, Z_, 6 * NM, edge_basis=B, edge_cov=cov_c, normal_rz=N_, groups=fl)
+    rng = np.random.default_rng(0)
+    draws = []
+    for _ in range(300):
+        d = B @ (rng.standard_normal(kc.size) * 0.04 * NM)
+        f = fit_power_law(R_ + d * N_[:, 0], Z_ + d * N_[:, 1], 6 * NM)
+        draws.append((f.n, f.ln_Q))
+    emp = np.cov(np.array(draws).T)
+    assert fit0.edge_noise_fraction == pytest.approx(1.0)  # exact points: no shape misfit
+    # 300 draws: the sample variance is known to ~ +-8 % (1 sigma)
+    assert np.sqrt(emp[0, 0]) == pytest.approx(fit0.sigma_n, rel=0.2)
+    assert np.sqrt(emp[1, 1]) == pytest.approx(fit0.sigma_lnQ, rel=0.2)
+    corr_emp = emp[0, 1] / np.sqrt(emp[0, 0] * emp[1, 1])
+    corr = fit0.cov_n_lnQ[0, 1] / (fit0.sigma_n * fit0.sigma_lnQ)
+    assert corr == pytest.approx(corr_emp, abs=0.05)

@@ -28,11 +28,8 @@ SUBSET = [
     (3.0, 0.3e-9, 1.0, np.inf, -10.0, 15e-9, "down"),  # thick light DLC coating (tip A)
     (4.0, 0.25e-9, 0.5, 20.0, 6.0, 0.0, "up"),
     (6.0, 0.4e-9, 2.0, np.inf, -12.0, 0.0, "up"),
-    pytest.param(2.0, 0.1e-9, 1.0, 20.0, 0.0, 1.5e-9, "down",  # native oxide (tip B)
-                 marks=pytest.mark.xfail(reason="known limitation: thin light oxide on a sharp tip, "
-                                                "profile ok but Eq. 12 error 4-8 % at h = 1 nm", strict=False)),
-    pytest.param(4.0, 0.2e-9, 1.0, 20.0, 3.0, 1.5e-9, "down",
-                 marks=pytest.mark.xfail(reason="known limitation: thin oxide, profile RMS 0.10-0.13 nm", strict=False)),
+    (2.0, 0.1e-9, 1.0, 20.0, 0.0, 1.5e-9, "down"),  # native oxide (tip B), fine pixels (binned 2 x 2)
+    (4.0, 0.2e-9, 1.0, 20.0, 3.0, 1.5e-9, "down"),
 ]
 
 
@@ -134,5 +131,13 @@ def test_stage_outputs(tmp_path):
         apex = f["axis/apex_image"][()]
         assert np.allclose(apex, truth["apex_px"], atol=1.0)
         assert f["edge/points_image"].shape[1] == 2
+        # edge covariance of the silhouette fit, aligned with the profile points
+        K = f["profile/offset_cov"].shape[0]
+        assert f["profile/offset_cov"].attrs["units"] == "m^2" and f["profile/offset_cov"].shape == (K, K)
+        for name in ("left", "right", "combined"):
+            g = f["profile"][name]
+            assert g["offset_basis"].shape == (g["r"].shape[0], K)
+            assert np.allclose(np.hypot(*g["normal_rz"][()].T), 1.0)
+        assert f["edge_model"].attrs["coating_model"] in ("single", "coated")
         for ds in ("asymmetry/mean", "asymmetry/rms", "edge_model/blur_sigma"):
             assert "units" in f[ds].attrs

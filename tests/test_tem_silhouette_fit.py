@@ -62,7 +62,7 @@ def test_tip_b_flat_tip_power_index_closer_than_per_normal_path():
     assert truth["n"] == pytest.approx(5.8)
     px = truth["pixel_size"]
     im = TemImage(img.astype(np.float64), px, "synthetic")
-    old = extract_profile(im)
+    old = extract_profile(im, refine="normals")
     new = extract_profile(im, refine="global")
     dn_old = abs(_fit_n(old, px) - truth["n"])
     dn_new = abs(_fit_n(new, px) - truth["n"])

@@ -39,17 +39,27 @@ class TipProfile:
     asymmetry_mean: float
     asymmetry_rms: float
     edge_model: dict = field(default_factory=dict)
+    # edge uncertainty (global fit): normal offset of point i = offset_basis[i] @ c, cov(c) = offset_cov (m^2);
+    # normal_rz = outward unit normal of each point in (r, z)
+    offset_basis: np.ndarray | None = None
+    offset_cov: np.ndarray | None = None
+    normal_rz: np.ndarray | None = None
 
-    def flank_rz(self, which):
-        """(r, z) of one flank ("left", "right") or "both", sorted by z, within profile_height."""
+    def flank_index(self, which):
+        """Indices of the edge points of one flank ("left", "right") or "both" within
+        profile_height, sorted by z (the order of ``flank_rz``)."""
         m = (self.z <= self.profile_height)
         if which == "left":
             m &= self.flank < 0
         elif which == "right":
             m &= self.flank > 0
-        r, z = np.abs(self.x[m]), self.z[m]
-        o = np.argsort(z, kind="stable")
-        return r[o], z[o]
+        i = np.nonzero(m)[0]
+        return i[np.argsort(self.z[i], kind="stable")]
+
+    def flank_rz(self, which):
+        """(r, z) of one flank ("left", "right") or "both", sorted by z, within profile_height."""
+        i = self.flank_index(which)
+        return np.abs(self.x[i]), self.z[i]
 
 
 def _coating_hint(coating, px, path):
@@ -73,7 +83,7 @@ def _fail(path, exc):
 
 
 def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto",
-                    refine="normals") -> TipProfile:
+                    refine="global") -> TipProfile:
     """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
 
     ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
@@ -123,31 +133,43 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
         raise NoTipError(path, "no tip in the image (edge too short near the apex)")
     _check_border(cont, win.shape, frame, hpx, path, r0, c0, H, W)
 
-    fit = refine_edges(win, cont, frame, coat_hint=coat_hint,
-                       frame_update=lambda p: _symmetry_frame(p, frame, hpx))
-    pts = fit.points[fit.good]
-    frame = _symmetry_frame(pts, frame, hpx)
-    extra = {}
-    asym_pts = None
+    extra, uncertainty, gf = {}, None, None
     if refine == "global":
-        from pipeline.tem.silhouette_fit import refine_global
+        from pipeline.tem.silhouette_fit import fit_silhouette
 
+        sym = _symmetry_frame(cont, frame, hpx)
         try:
-            gf = refine_global(win, fit, frame, hpx, noise=noise, pixel_size=px)
-        except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # keep the per-normal edge
-            extra = dict(refine="normals", global_flags=[f"global refinement failed: {exc}"])
-        else:
-            asym_pts = pts  # the global model is axisymmetric: asymmetry from the per-normal edge
-            fit = gf.edge
-            pts = fit.points[fit.good]
-            frame = _symmetry_frame(pts, gf.frame, hpx)
-            extra = dict(refine="global", global_flags=list(gf.flags), global_chi2_red=gf.chi2_red,
-                         global_n_pixels=gf.n_pixels, global_iterations=gf.n_iter, global_stderr=gf.stderr)
+            gf = fit_silhouette(flat, cont, sym, hpx, noise, pixel_size=px, coat_hint=coat_hint)
+        except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # fall back to per-normal fits
+            extra = dict(refine="normals", global_flags=[f"global fit failed: {exc}"])
+    if gf is not None:
+        pts = gf.points
+        frame = _symmetry_frame(pts, gf.frame, hpx)
+        edge_model = dict(k_outer=gf.k_outer, k_core=gf.k_core, coat_px=gf.coat_px, sigma_px=gf.sigma_px,
+                          rms_intensity=gf.rms_intensity, n_rejected=0)
+        extra = dict(refine="global", global_flags=list(gf.flags), global_chi2_red=gf.chi2_red,
+                     global_n_pixels=gf.n_pixels, global_iterations=gf.n_iter, global_stderr=gf.stderr,
+                     coating_test=gf.coating_test)
+        uncertainty = (gf.basis, gf.cov_c, gf.normals)
+    else:
+        fit = refine_edges(win, cont, frame, coat_hint=coat_hint,
+                           frame_update=lambda p: _symmetry_frame(p, frame, hpx))
+        pts = fit.points[fit.good]
+        frame = _symmetry_frame(pts, frame, hpx)
+        edge_model = dict(k_outer=fit.k_outer, k_core=fit.k_core, coat_px=fit.coat_px, sigma_px=fit.sigma_px,
+                          rms_intensity=fit.rms_intensity, n_rejected=int((~fit.good).sum()))
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
     flank = np.where(x < 0, -1, 1)
-    a_mean, a_rms = _asymmetry(x, z, hpx) if asym_pts is None else _asymmetry(*frame.to_tip(asym_pts), hpx)
+    a_mean, a_rms = _asymmetry(x, z, hpx)
+    basis = cov = normal_rz = None
+    if uncertainty is not None:
+        basis, cov_c, nrm = uncertainty
+        basis = basis[keep]
+        cov = cov_c * px**2
+        nx, nz = nrm[keep] @ frame.v, nrm[keep] @ frame.u
+        normal_rz = np.column_stack([np.where(x < 0, -nx, nx), nz])
 
     # back to original image coordinates
     pts_img = pts + origin
@@ -163,10 +185,11 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
         angle=float(angle), apex_px=apex_img, axis_px=axis, edge_px=pts_img,
         x=x * px, z=z * px, flank=flank, profile_height=float(profile_height),
         asymmetry_mean=a_mean * px, asymmetry_rms=a_rms * px,
-        edge_model=dict(k_outer_per_m=fit.k_outer / px, k_core_per_m=fit.k_core / px,
-                        coating_thickness=fit.coat_px * px, blur_sigma=fit.sigma_px * px,
-                        rms_intensity=fit.rms_intensity, n_points=int(len(pts)),
-                        n_rejected=int((~fit.good).sum()), **extra),
+        edge_model=dict(k_outer_per_m=edge_model["k_outer"] / px, k_core_per_m=edge_model["k_core"] / px,
+                        coating_thickness=edge_model["coat_px"] * px, blur_sigma=edge_model["sigma_px"] * px,
+                        rms_intensity=edge_model["rms_intensity"], n_points=int(len(pts)),
+                        n_rejected=edge_model["n_rejected"], **extra),
+        offset_basis=basis, offset_cov=cov, normal_rz=normal_rz,
     )
 
 

@@ -1,50 +1,60 @@
-"""Global model fit of the tip silhouette: all edge pixels at once (opt-in refinement).
+"""Global model fit of the tip silhouette: every pixel near the edge at once.
 
-Runs AFTER ``edges.refine_edges`` (per-normal fits), which supplies a good
-initial silhouette, axis/apex frame, attenuation(s), blur and coating.
+Starts from the iso-contour just below the background (``edges.initial_contour``,
+which lies outside the surface by ~2 blur sigma) and its symmetry frame; no
+per-normal fitting is needed.
 
-Model (same physics as ``pipeline.synth.tem_image``): a body of revolution whose
-OUTER meridian is the reference meridian C0(s) of the per-normal result
-(symmetrised over both flanks, s = arc length from the apex, px) moved along its
-outward normal n0(s) by a smooth offset
+Model (same physics as ``pipeline.synth.tem_image``), tip frame, pixels:
+- outer meridian = the smoothed reference curve C0(S) (S = signed arc length,
+  apex at 0, left flank negative) moved along its outward normal by
+  delta(S) = sum_k c_k phi(S/D - k), cubic B-splines with knots every D ~ 1.2 nm
+  (no power law presupposed; both flanks free, so asymmetry is measured);
+- cross-section at height z: the disk spanning the two flanks (exact for a body of
+  revolution); a lighter coating of normal thickness c lies inside the outer
+  surface, core = erosion of the outer section by c (``projection.eroded_radius``);
+- T = exp(-k_o t_outer - (k_c - k_o) t_core) with the exact chords, evaluated at
+  pixel centres and 4 x 4 supersampled in pixels within ~1.5 px of a silhouette;
+- image = G_sigma * T x (a + b_r row + b_c col): Gaussian blur, linear illumination
+  (a, b_r, b_c eliminated by linear least squares).
+Residual pixels: a band from 3 sigma + 4 px outside to 3 sigma + 14 px inside the
+initial edge, up to 1.02 x the profile height; Poisson weights; a weak
+second-difference penalty on c_k and a hinge keeping z(S) monotone on each flank.
 
-    delta(s) = sum_k c_k phi_k(s),  phi_k = cubic B-spline centred at k*D, even in s,
+Levenberg-Marquardt.  Jacobian: the spline columns use the local-translation
+approximation d model / d c_k = phi_k(S_i) x d model / d(uniform offset), with S_i
+the arc position of the curve point nearest to pixel i (exact for a uniform
+offset, relative error ~(3 sigma / D)^2 / 2 otherwise: one extra rendering for all
+c_k); blur, attenuations and coating thickness by finite differences (re-blurring
+or re-exponentiating cached chords, only the coating re-renders the core).
 
-with knots every D ~ 1.2 nm (no power law presupposed; the flat bottom of a blunt
-tip is represented as well as a paraboloid).  The axis (lateral offset, angle)
-is free; the apex height is delta(0).  Transmission
-T = exp(-k_o t_outer - (k_c - k_o) t_core) with the exact chords (core = erosion
-of the outer body by the coating thickness c), evaluated at pixel centres and
-5 x 5 supersampled near the outer/core silhouettes, times a linear illumination
-(a + b_r row + b_c col), then a 2-D Gaussian blur (sigma) on the pixel grid.
-Only pixels in a band of a few blur widths around the outer (and core) edge
-within the profile window enter the fit.  Linear parameters (a, b_r, b_c) are
-part of each Gauss-Newton step in closed form; the nonlinear ones (c_k, axis
-offset and angle, log sigma, log k_o[, log k_c, log c]) use a finite-difference
-Jacobian with the B-spline coefficients grouped by non-overlapping influence
-(a pixel at height z depends on r(z') for |z' - z| <= 4 sigma + c + 1 only).
-Weights: Poisson, 1/sqrt(model), scaled by the background noise estimate.
-Levenberg-Marquardt with a weak second-difference penalty on c_k.
+Coating: "auto" fits the single-layer model and the coated one (from a few
+starting thicknesses) and keeps the coated model only if it lowers chi^2 by more
+than ``COAT_DCHI2`` (likelihood ratio, 2 extra parameters) with physical values;
+a coated fit whose thickness has a relative standard error > 30 % is flagged
+"coating not identifiable".
 
-Parameters the data cannot support (coating thickness or core attenuation with a
-relative standard error > 30 %, or hitting a bound) are reported in ``flags``
-and the coating is then held at the per-normal value instead of being forced.
+The result carries, for every output edge point, its B-spline row and the
+covariance of the c_k (marginal over all other parameters, px^2): the fit stage
+propagates it into the covariance of (n, Q) (neighbouring edge points are strongly
+correlated, so a point-wise residual scatter would understate it).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
-from pipeline.tem.edges import BodyModel, EdgeFit, TipFrame
-from pipeline.tem.projection import chord
+from pipeline.tem.edges import TipFrame
+from pipeline.tem.projection import chord, eroded_radius
 
-__all__ = ["GlobalFit", "refine_global"]
+__all__ = ["GlobalFit", "fit_silhouette", "reference_curve", "COAT_DCHI2"]
 
-_SS = 5
+_SS = 4
 _SUB = (np.arange(_SS) + 0.5) / _SS - 0.5
+KNOT_NM = 1.2  # knot spacing of the edge-offset spline (nm)
+COAT_DCHI2 = 30.0  # chi^2 decrease needed to accept a coating layer (2 extra parameters)
 
 
 def _bspline(u):
@@ -56,389 +66,591 @@ def _bspline(u):
 
 @dataclass
 class GlobalFit:
-    edge: EdgeFit
+    points: np.ndarray  # (N, 2) outer silhouette (row, col) in window px, left -> apex -> right
+    normals: np.ndarray  # (N, 2) outward unit normals (row, col)
+    basis: np.ndarray  # (N, K) d(normal offset of point)/d c_k
+    cov_c: np.ndarray  # (K, K) covariance of the c_k (px^2), marginal
     frame: TipFrame
-    params: dict
-    stderr: dict
+    sigma_px: float
+    k_outer: float  # 1/px
+    k_core: float
+    coat_px: float
+    rms_intensity: float  # RMS residual relative to the background
+    chi2_red: float
+    n_pixels: int
+    n_iter: int
+    stderr: dict = field(default_factory=dict)
     flags: list = field(default_factory=list)
-    n_pixels: int = 0
-    n_iter: int = 0
-    chi2_red: float = float("nan")
+    coating_test: dict = field(default_factory=dict)
+    binning: int = 1
 
 
-def _reference_meridian(pts, frame, step=0.25):
-    """Symmetrised meridian (r, z) vs arc length s from the apex (px), with outward normals."""
-    x, z = frame.to_tip(pts)
-    i0 = int(np.argmin(np.abs(x) + 1e-3 * z))  # point on the axis
-    flanks = []
-    for seg in ((x[: i0 + 1][::-1], z[: i0 + 1][::-1]), (x[i0:], z[i0:])):
-        r, zz = np.abs(seg[0]), seg[1]
-        r = np.concatenate([[0.0], r])
-        zz = np.concatenate([[zz[0]], zz])
-        s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(r), np.diff(zz)))])
-        keep = np.concatenate([[True], np.diff(s) > 1e-9])
-        flanks.append((s[keep], r[keep], zz[keep]))
-    smax = min(f[0][-1] for f in flanks)
-    s = np.arange(0.0, smax, step)
-    r = 0.5 * sum(np.interp(s, f[0], f[1]) for f in flanks)
-    zz = 0.5 * sum(np.interp(s, f[0], f[2]) for f in flanks)
-    # smooth (even extension keeps the apex symmetric), then re-parametrise by arc length
-    rr = np.concatenate([-r[:0:-1], r])
-    z2 = np.concatenate([zz[:0:-1], zz])
-    rr = ndimage.gaussian_filter1d(rr, 2.0 / step, mode="nearest")
-    z2 = ndimage.gaussian_filter1d(z2, 2.0 / step, mode="nearest")
-    r, zz = rr[s.size - 1:], z2[s.size - 1:]
-    r = r - r[0]
-    zz = np.maximum.accumulate(zz)
-    sa = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(r), np.diff(zz)))])
-    s = np.arange(0.0, sa[-1], step)
-    r, zz = np.interp(s, sa, r), np.interp(s, sa, zz)
-    tr, tz = np.gradient(r, step), np.gradient(zz, step)
-    tr[0], tz[0] = 1.0, 0.0
-    nn = np.hypot(tr, tz) + 1e-12
-    return s, r, zz, tz / nn, -tr / nn  # normal (n_r, n_z) outward
+def reference_curve(pts_tip, step=0.25, smooth_px=2.0):
+    """Smoothed polyline (x, z) (tip frame, px) -> S (signed arc length, apex 0), x, z, nx, nz."""
+    x, z = pts_tip
+    if x[0] > x[-1]:
+        x, z = x[::-1], z[::-1]
+    seg = np.hypot(np.diff(x), np.diff(z))
+    keep = np.concatenate([[True], seg > 1e-9])
+    x, z = x[keep], z[keep]
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(z)))])
+    si = np.arange(0.0, s[-1], step)
+    x, z = np.interp(si, s, x), np.interp(si, s, z)
+    if smooth_px > 0:
+        x = ndimage.gaussian_filter1d(x, smooth_px / step, mode="nearest")
+        z = ndimage.gaussian_filter1d(z, smooth_px / step, mode="nearest")
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(z)))])
+    S = s - s[int(np.argmin(z))]
+    tx, tz = np.gradient(x, s), np.gradient(z, s)
+    nn = np.hypot(tx, tz) + 1e-12
+    return S, x, z, tz / nn, -tx / nn
 
 
-class _Model:
-    def __init__(self, frame0, s, r0, z0, nr, nz, knot, hz_top, coat_on):
-        self.frame0 = frame0
-        self.s, self.r0, self.z0, self.nr, self.nz = s, r0, z0, nr, nz
+class _Body:
+    """Cross-section tables of the body bounded by a (left -> right) meridian polyline."""
+
+    dz = 0.1
+
+    def __init__(self, x, z, coat):
+        i0 = int(np.argmin(z))
+        zl = np.maximum.accumulate(z[: i0 + 1][::-1])
+        xl = x[: i0 + 1][::-1]
+        zr = np.maximum.accumulate(z[i0:])
+        xr = x[i0:]
+        z0 = z[i0]
+        top = max(min(zl[-1], zr[-1]), z0 + 2 * self.dz)
+        self.zg = np.arange(z0, top + 1e-9, self.dz)
+        xl_g = np.interp(self.zg, zl + 1e-9 * np.arange(zl.size), xl)
+        xr_g = np.interp(self.zg, zr + 1e-9 * np.arange(zr.size), xr)
+        self.rho = np.maximum(0.5 * (xr_g - xl_g), 0.0)
+        self.cen = 0.5 * (xr_g + xl_g)
+        self.set_coat(coat)
+
+    def set_coat(self, coat):
+        self.coat = float(coat)
+        if self.coat > 0:
+            pad = int(np.ceil(self.coat / self.dz)) + 1
+            zg = np.concatenate([self.zg[0] - self.dz * np.arange(pad, 0, -1), self.zg])
+            r = np.concatenate([np.full(pad, -1.0), self.rho])
+            self.rho_c = eroded_radius(zg, r, self.coat)[pad:]
+        else:
+            self.rho_c = self.rho
+
+    def chords(self, x, z, core=True):
+        """(t_outer, t_core) at tip-frame points (px); t_core only if ``core``."""
+        f = (z - self.zg[0]) / self.dz
+        below = f < 0
+        f = np.clip(f, 0.0, self.zg.size - 1.000001)
+        i = f.astype(np.intp)
+        w = f - i
+        cen = self.cen[i] * (1 - w) + self.cen[i + 1] * w
+        xx = x - cen
+        rho = np.where(below, -1.0, self.rho[i] * (1 - w) + self.rho[i + 1] * w)
+        t_o = chord(rho, xx)
+        if not core or self.coat <= 0:
+            return t_o, t_o
+        rc = np.where(below, -1.0, self.rho_c[i] * (1 - w) + self.rho_c[i + 1] * w)
+        return t_o, chord(rc, xx)
+
+
+class _Problem:
+    """Fixed pixel geometry, data and the forward model of one silhouette fit."""
+
+    def __init__(self, img, frame, curve, hpx, noise, knot, sigma_max=4.0):
+        self.img, self.frame = img, frame
         self.knot = knot
-        self.coat_on = coat_on
-        ktop = int(np.floor(np.interp(hz_top, z0, s) / knot)) + 1
-        self.K = min(ktop, int(s[-1] / knot) - 1) + 1
-        self.basis = np.stack([_bspline(s / knot - k) + (_bspline(s / knot + k) if k > 0 else 0.0)
-                               for k in range(self.K)], axis=1)
+        self.set_reference(curve)
+        S, x0, z0, nx, nz = curve
+        self.ztop = 1.02 * hpx
+        H, W = img.shape
+        # residual pixels: band around the initial curve, z <= ztop
+        out_m, in_m = 3.0 * 1.5 + 4.0, 3.0 * 1.5 + 14.0
+        sel = z0 <= self.ztop + out_m + 2
+        ci = frame.to_image(x0[sel], z0[sel])
+        mrg = int(np.ceil(out_m + in_m + 4 * sigma_max + 4))
+        r_lo = int(max(0, np.floor(ci[:, 0].min()) - mrg))
+        r_hi = int(min(H, np.ceil(ci[:, 0].max()) + mrg + 1))
+        c_lo = int(max(0, np.floor(ci[:, 1].min()) - mrg))
+        c_hi = int(min(W, np.ceil(ci[:, 1].max()) + mrg + 1))
+        self.shape = (r_hi - r_lo, c_hi - c_lo)
+        RR, CC = np.mgrid[r_lo:r_hi, c_lo:c_hi].astype(float)
+        P = np.column_stack([RR.ravel(), CC.ravel()])
+        px, pz = frame.to_tip(P)
+        tree = cKDTree(np.column_stack([x0, z0]))
+        dist, _ = tree.query(np.column_stack([px, pz]), distance_upper_bound=in_m + 1)
+        body0 = _Body(x0, z0, 0.0)
+        t0, _ = body0.chords(px, pz, core=False)
+        inside = t0 > 0
+        sd = np.where(inside, -dist, dist)
+        use = (sd <= out_m) & (sd >= -in_m) & (pz <= self.ztop)
+        # blur support must stay inside the rectangle (unless it is the image border)
+        bm = int(np.ceil(4 * sigma_max + 1))
+        rl, cl = RR.ravel() - r_lo, CC.ravel() - c_lo
+        use &= ((rl >= bm) | (r_lo == 0)) & ((rl < self.shape[0] - bm) | (r_hi == H))
+        use &= ((cl >= bm) | (c_lo == 0)) & ((cl < self.shape[1] - bm) | (c_hi == W))
+        self.idx = np.nonzero(use)[0]
+        if self.idx.size < 50:
+            raise ValueError("too few pixels near the edge for the silhouette fit")
+        need = np.zeros(self.shape, bool)
+        need.ravel()[self.idx] = True
+        need = ndimage.binary_dilation(need, np.ones((3, 3), bool), int(np.ceil(4 * sigma_max)) + 2)
+        self.need = np.nonzero(need.ravel())[0]
+        self.nx_, self.nz_ = px[self.need], pz[self.need]
+        # position of each residual pixel within the need list
+        pos = np.full(P.shape[0], -1)
+        pos[self.need] = np.arange(self.need.size)
+        self.res_in_need = pos[self.idx]
+        self.I = img[r_lo:r_hi, c_lo:c_hi].ravel()[self.idx]
+        rn = (RR.ravel()[self.idx] - 0.5 * (r_lo + r_hi)) / max(H, 1)
+        cn = (CC.ravel()[self.idx] - 0.5 * (c_lo + c_hi)) / max(W, 1)
+        self.rn, self.cn = rn, cn
+        self.rows, self.cols = RR.ravel()[self.idx], CC.ravel()[self.idx]
+        self.pz_res = pz[self.idx]
+        self.px_res = px[self.idx]
+        # sub-pixel offsets in the tip frame (rotation only)
+        dr = np.repeat(_SUB, _SS)
+        dc = np.tile(_SUB, _SS)
+        off = np.column_stack([dr, dc])
+        self.sub_x = off @ frame.v
+        self.sub_z = off @ frame.u
+        self.noise = noise
+        self.w = np.ones(self.idx.size)
+        self.map_c = None
 
+    def set_reference(self, curve):
+        """Reference meridian (S, x, z, nx, nz) and its B-spline basis (knots every D)."""
+        S, x0, z0, nx, nz = curve
+        self.S, self.x0, self.z0, self.nx, self.nz = S, x0, z0, nx, nz
+        k_lo = int(np.floor(S[0] / self.knot)) - 1
+        k_hi = int(np.ceil(S[-1] / self.knot)) + 1
+        self.kc = np.arange(k_lo, k_hi + 1)
+        self.K = self.kc.size
+        self.Bc = _bspline(S[:, None] / self.knot - self.kc[None, :])
+        self.map_c = None
+
+    def rebase(self, c):
+        """Make the curve of offsets ``c`` the new reference (offsets then start at 0): the
+        smoothness penalty then acts relative to the fitted shape, not the contour's."""
+        x, z = self.curve(c)
+        self.set_reference(reference_curve((x, z), step=float(self.S[1] - self.S[0]), smooth_px=0.0))
+
+    # ------------------------------------------------------------------ geometry
     def curve(self, c):
-        d = self.basis @ c
-        return self.r0 + d * self.nr, self.z0 + d * self.nz
+        d = self.Bc @ c
+        return self.x0 + d * self.nx, self.z0 + d * self.nz
 
-    def frame(self, p):
-        f0 = self.frame0
-        return TipFrame(f0.apex + p["x0"] * f0.v, f0.angle + p["dth"])
+    def spline_rows(self, S):
+        """Sparse B-spline rows at arc positions S: (index (N, 4) into c, value (N, 4))."""
+        u = S / self.knot
+        j0 = np.floor(u).astype(int) - 1
+        j = j0[:, None] + np.arange(4)[None, :]
+        val = _bspline(u[:, None] - j)
+        return np.clip(j - self.kc[0], 0, self.K - 1), val
 
-    def body(self, p):
-        r, z = self.curve(p["c"])
-        z = np.maximum.accumulate(z)
-        fr = self.frame(p)
-        poly = np.concatenate([fr.to_image(-r[::-1], z[::-1]), fr.to_image(r[1:], z[1:])])
-        return BodyModel(fr, poly, p["coat"] if self.coat_on else 0.0), fr, r, z
+    def update_pixel_map(self, c, coat):
+        """Nearest curve point of every needed pixel: B-spline rows of the residual pixels
+        (local-translation Jacobian) and the distance map that selects the pixels to
+        supersample."""
+        x, z = self.curve(c)
+        # only residual pixels can be near a silhouette (outer edge: inside the band by
+        # construction; core: coat <= 12 px < inner band width)
+        d, j = cKDTree(np.column_stack([x, z])).query(np.column_stack([self.px_res, self.pz_res]))
+        self.dist_need = np.full(self.need.size, np.inf)
+        self.dist_need[self.res_in_need] = d
+        jr = j
+        idx, val = self.spline_rows(self.S[jr])
+        n = idx.shape[0]
+        self.Phi = sparse.csr_matrix((val.ravel(), (np.repeat(np.arange(n), 4), idx.ravel())), shape=(n, self.K))
+        self.map_c, self.map_coat = c.copy(), float(coat)
 
+    def map_stale(self, c, coat):
+        return (self.map_c is None or np.max(np.abs(self.Bc @ (c - self.map_c))) > 0.4
+                or abs(coat - self.map_coat) > 0.4)
 
-def _unpack(v, K, coat_on):
-    p = dict(c=v[:K], x0=v[K], dth=v[K + 1], sigma=np.exp(v[K + 2]), k_o=np.exp(v[K + 3]))
-    if coat_on:
-        p["k_c"], p["coat"] = np.exp(v[K + 4]), np.exp(v[K + 5])
-    else:
-        p["k_c"], p["coat"] = p["k_o"], 0.0
-    return p
+    # ------------------------------------------------------------------ forward model
+    def chords(self, c, coat):
+        """Chords (t_o, t_c) at the needed pixel centres, and at the 4 x 4 sub-samples of the
+        pixels within 2 px of the outer or core silhouette (T is averaged there, where it
+        has the square-root kink)."""
+        if self.map_stale(c, coat):
+            self.update_pixel_map(c, coat)
+        x, z = self.curve(c)
+        body = _Body(x, z, coat)
+        xc, zc = self.nx_, self.nz_
+        t_o, t_c = body.chords(xc, zc)
+        # the band is fixed between updates of the distance map (the model must be smooth
+        # in the parameters for the finite differences)
+        sd = np.where(t_o > 0, -self.dist_need, self.dist_need)
+        band = np.abs(sd) < 2.0
+        if self.map_coat > 0:
+            band |= np.abs(sd + self.map_coat) < 2.0
+        bi = np.nonzero(band)[0]
+        xs = (xc[bi, None] + self.sub_x[None, :]).ravel()
+        zs = (zc[bi, None] + self.sub_z[None, :]).ravel()
+        s_o, s_c = body.chords(xs, zs)
+        return (t_o, t_c, bi, s_o, s_c)
 
+    @staticmethod
+    def transmission(ch, k_o, k_c):
+        t_o, t_c, bi, s_o, s_c = ch
+        T = np.exp(-(k_o * t_o + (k_c - k_o) * t_c))
+        if bi.size:
+            T[bi] = np.exp(-(k_o * s_o + (k_c - k_o) * s_c)).reshape(-1, _SS * _SS).mean(1)
+        return T
 
-def refine_global(win, fit: EdgeFit, frame: TipFrame, hpx, noise=None, knot_nm=1.2, pixel_size=None,
-                  max_iter=12, smooth_weight=2.0):
-    """Global refinement of ``fit`` (see module doc); ``win`` raw window, ``frame`` the
-    symmetry frame of ``fit.points[fit.good]``, ``hpx`` profile height (px).
-    Returns GlobalFit with an EdgeFit of the refined outer silhouette (both flanks,
-    ~1 px apart, ordered left -> apex -> right)."""
-    win = np.asarray(win, float)
-    pts = fit.points[fit.good]
-    s, r0, z0, nr, nz = _reference_meridian(pts, frame)
-    knot = float(np.clip(knot_nm * 1e-9 / pixel_size if pixel_size else 6.0, 4.0, 16.0))
-    coat_on = fit.coat_px > 0
-    ztop = 1.02 * hpx
-    model = _Model(frame, s, r0, z0, nr, nz, knot, ztop, coat_on)
-    K = model.K
-    v = np.concatenate([np.zeros(K), [0.0, 0.0, np.log(fit.sigma_px), np.log(fit.k_outer)]])
-    if coat_on:
-        v = np.concatenate([v, [np.log(fit.k_core), np.log(fit.coat_px)]])
-    names = [f"c{k}" for k in range(K)] + ["x0", "dth", "log_sigma", "log_k_o"] + (
-        ["log_k_c", "log_coat"] if coat_on else [])
-    steps = np.array([0.02] * K + [0.02, 2e-4 * 50 / max(50.0, hpx), 0.01, 0.01] + ([0.01, 0.005] if coat_on else []))
+    def blurred(self, T, sigma):
+        """Columns (Npix, 3): blur(T), blur(T) x row, blur(T) x col at the residual pixels."""
+        img = np.ones(self.shape[0] * self.shape[1])
+        img[self.need] = T
+        img = img.reshape(self.shape)
+        if sigma > 0.05:
+            img = ndimage.gaussian_filter(img, sigma, mode="nearest", truncate=4.0)
+        bt = img.ravel()[self.idx]
+        return np.column_stack([bt, bt * self.rn, bt * self.cn])
 
-    # ---- residual pixel set (fixed): band around the initial outer (and core) edge
-    H, W = win.shape
-    p0 = _unpack(v, K, coat_on)
-    rc, zc = model.curve(p0["c"])
-    sig0 = fit.sigma_px
-    out_m = 3.0 * sig0 + 3.0
-    in_m = (fit.coat_px if coat_on else 0.0) + 3.0 * sig0 + 3.0
-    mrg = int(np.ceil(4 * max(sig0 * 1.6, 1.0) + out_m + 3))
-    ctr_img = np.concatenate([frame.to_image(-rc[::-1], zc[::-1]), frame.to_image(rc[1:], zc[1:])])
-    tree = cKDTree(np.column_stack([np.concatenate([-rc[::-1], rc[1:]]), np.concatenate([zc[::-1], zc[1:]])]))
-    sel_c = zc <= ztop + mrg
-    rows_c, cols_c = ctr_img[:, 0], ctr_img[:, 1]
-    selc2 = np.concatenate([sel_c[::-1], sel_c[1:]])
-    r_lo = int(max(0, np.floor(rows_c[selc2].min()) - mrg))
-    r_hi = int(min(H, np.ceil(rows_c[selc2].max()) + mrg + 1))
-    c_lo = int(max(0, np.floor(cols_c[selc2].min()) - mrg))
-    c_hi = int(min(W, np.ceil(cols_c[selc2].max()) + mrg + 1))
-    RR, CC = np.mgrid[r_lo:r_hi, c_lo:c_hi].astype(float)
-    P = np.column_stack([RR.ravel(), CC.ravel()])
-    px_x, px_z = frame.to_tip(P)
-    dist, _ = tree.query(np.column_stack([px_x, px_z]))
-    inside = (np.abs(px_x) < np.interp(px_z, zc, rc, left=-1.0)) & (px_z > zc[0])
-    sd = np.where(inside, -dist, dist)
-    use = (sd <= out_m) & (sd >= -in_m) & (px_z <= ztop)
-    # keep residual pixels away from the region border (blur support)
-    bm = int(np.ceil(4 * 1.6 * sig0 + 1))  # sigma <= 1.6 x its start (bounds)
-    rloc, cloc = RR.ravel() - r_lo, CC.ravel() - c_lo
-    use &= ((rloc >= bm) | (r_lo == 0)) & ((rloc < r_hi - r_lo - bm) | (r_hi == H))
-    use &= ((cloc >= bm) | (c_lo == 0)) & ((cloc < c_hi - c_lo - bm) | (c_hi == W))
-    idx = np.nonzero(use)[0]
-    I = win[r_lo:r_hi, c_lo:c_hi].ravel()[idx]
-    shape = (r_hi - r_lo, c_hi - c_lo)
-    rn = (RR - 0.5 * (r_lo + r_hi)) / max(H, 1)
-    cn = (CC - 0.5 * (c_lo + c_hi)) / max(W, 1)
-    pz_use = px_z[idx]
-    rn_i, cn_i = rn.ravel()[idx], cn.ravel()[idx]
-
-    # pixels whose transmission reaches a residual pixel through the blur
-    need_img = np.zeros(shape, bool)
-    need_img.ravel()[idx] = True
-    need_img = ndimage.binary_dilation(need_img, np.ones((3, 3), bool), int(np.ceil(4 * 1.6 * sig0)) + 2)
-    need = need_img.ravel()
-    geo = {}
-
-    def tip_xz(p, ss_mask):
-        """Tip-frame coordinates of the needed pixel centres and of the 5x5 sub-samples
-        (cached: the frame only changes with the axis parameters)."""
-        key = (float(p["x0"]), float(p["dth"]), id(ss_mask))
-        if key not in geo:
-            if len(geo) > 8:
-                geo.clear()
-            fr = model.frame(p)
-            xc, zc_ = fr.to_tip(P[need])
-            q = P[ss_mask & need]
-            qq = np.stack([q[:, None, None, 0] + _SUB[None, :, None] + 0 * _SUB[None, None, :],
-                           q[:, None, None, 1] + 0 * _SUB[None, :, None] + _SUB[None, None, :]], axis=-1)
-            xs, zs = fr.to_tip(qq.reshape(-1, 2))
-            geo[key] = (xc, zc_, xs, zs, ss_mask[need])
-        return geo[key]
-
-    def chords_xz(body, x, z):
-        tabs = (body.rho, body.cen, body.rho_core) if body.coat > 0 else (body.rho, body.cen)
-        vals, below = body._lookup(z, tabs)
-        t_o = chord(np.where(below, -1.0, vals[0]), x - vals[1])
-        if body.coat > 0:
-            return t_o, chord(np.where(below, -1.0, vals[2]), x - vals[1])
-        return t_o, t_o
-
-    def render(vv, ss_mask):
-        """Basis images (Npix, 3): blur(T), blur(T row), blur(T col) at the residual pixels."""
-        p = _unpack(vv, K, coat_on)
-        body, _, _, _ = model.body(p)
-        xc, zc_, xs, zs, ssn = tip_xz(p, ss_mask)
-        t_o, t_c = chords_xz(body, xc, zc_)
-        Tn = np.exp(-(p["k_o"] * t_o + (p["k_c"] - p["k_o"]) * t_c))
-        if xs.size:
-            a, b = chords_xz(body, xs, zs)
-            Tn[ssn] = np.exp(-(p["k_o"] * a + (p["k_c"] - p["k_o"]) * b)).reshape(-1, _SS * _SS).mean(1)
-        T = np.ones(P.shape[0])
-        T[need] = Tn
-        T = T.reshape(shape)
-        sg = p["sigma"]
-        # blur(T x linear illumination) = illumination x blur(T) up to sigma^2/size: one filter
-        bt = (ndimage.gaussian_filter(T, sg, mode="nearest") if sg > 0.05 else T).ravel()[idx]
-        return np.column_stack([bt, bt * rn_i, bt * cn_i])
-
-    def ss_band(vv):
-        p = _unpack(vv, K, coat_on)
-        r, z = model.curve(p["c"])
-        fr = model.frame(p)
-        x, zz = fr.to_tip(P)
-        pts_c = [np.column_stack([np.concatenate([-r[::-1], r[1:]]), np.concatenate([z[::-1], z[1:]])])]
-        if coat_on:
-            nr_, nz_ = model.nr, model.nz
-            rcr, zcr = r - p["coat"] * nr_, z - p["coat"] * nz_
-            ok = rcr >= 0
-            pts_c.append(np.column_stack([np.concatenate([-rcr[ok][::-1], rcr[ok]]),
-                                          np.concatenate([zcr[ok][::-1], zcr[ok]])]))
-        m = np.zeros(P.shape[0], bool)
-        for c_ in pts_c:
-            d, _ = cKDTree(c_).query(np.column_stack([x, zz]), distance_upper_bound=2.0)
-            m |= np.isfinite(d)
-        return m
-
-    # ---- dependency of pixels on the spline coefficients -> column groups
-    def groups(vv):
-        p = _unpack(vv, K, coat_on)
-        r, z = model.curve(p["c"])
-        z = np.maximum.accumulate(z)
-        m = 4 * p["sigma"] + p["coat"] + 2.0
-        s_lo = np.interp(pz_use - m, z, model.s, left=0.0)
-        s_hi = np.interp(pz_use + m, z, model.s)
-        kc = np.arange(K) * knot
-        D = (s_lo[:, None] <= kc[None, :] + 2 * knot) & (s_hi[:, None] >= kc[None, :] - 2 * knot)
-        D[:, 1] |= (s_lo <= 1 * knot)  # mirrored part of phi_1 near the apex
-        cols = []
-        for k in range(K):
-            for g in cols:
-                if not (D[:, g].any(axis=1) & D[:, k]).any():
-                    g.append(k)
-                    break
-            else:
-                cols.append([k])
-        return D, cols
-
-    # weights (Poisson): sigma_i = noise_rel * a * sqrt(M_i / a)
-    if noise is None or not noise > 0:
-        noise = 0.01
-    L2 = np.diff(np.eye(K), 2, axis=0) if K > 2 else np.zeros((0, K))
-
-    def solve_lin(B, w):
-        lin, *_ = np.linalg.lstsq(B * w[:, None], I * w, rcond=None)
+    def linear(self, B):
+        w = self.w
+        lin, *_ = np.linalg.lstsq(B * w[:, None], self.I * w, rcond=None)
         return lin
 
-    # monotone height along the meridian: z(s) is linear in c, hinge penalty on decreases
-    # (a fold below the apex would be invisible to the body model, i.e. unconstrained)
-    ms = np.arange(0, s.size - 1, max(1, int(round(knot / 4 / (s[1] - s[0])))))
-    Az = (model.basis[ms[1:]] * nz[ms[1:], None] - model.basis[ms[:-1]] * nz[ms[:-1], None])
-    bz = z0[ms[1:]] - z0[ms[:-1]]
-    mu = 100.0
+    def set_weights(self, model):
+        """Poisson weights 1/sd with sd = noise x sqrt(model / background) (flattened image)."""
+        m = np.clip(model, 0.05, None)
+        self.w = 1.0 / (self.noise * np.sqrt(m))
 
-    def penalty(vv):
-        """Penalty residuals and their Jacobian w.r.t. c (smoothness, monotone z)."""
-        c = vv[:K]
-        dz = Az @ c + bz
+
+@dataclass
+class _State:
+    v: np.ndarray
+    cost: float
+    ch: tuple
+    T: np.ndarray
+    B: np.ndarray
+    lin: np.ndarray
+    res: np.ndarray
+
+
+class _Fitter:
+    """Levenberg-Marquardt over (c, log sigma, log k_o[, log k_c, log coat]) (+ linear)."""
+
+    def __init__(self, prob: _Problem, coated, smooth_weight=2.0, mu=100.0):
+        self.p = prob
+        self.coated = coated
+        K = prob.K
+        self.K = K
+        self.L2 = np.sqrt(smooth_weight) * np.diff(np.eye(K), 2, axis=0)
+        # monotone z along each flank: sample the curve every ~D/4 from the apex outwards
+        S = prob.S
+        i0 = int(np.argmin(np.abs(S)))
+        stp = max(1, int(round(prob.knot / 4 / max(S[1] - S[0], 1e-9))))
+        right = np.arange(i0, S.size, stp)
+        left = np.arange(i0, -1, -stp)
+        rows_a, rows_b = [], []
+        for br in (right, left):
+            rows_a.append(br[1:])
+            rows_b.append(br[:-1])
+        a, b = np.concatenate(rows_a), np.concatenate(rows_b)
+        self.Az = prob.Bc[a] * prob.nz[a, None] - prob.Bc[b] * prob.nz[b, None]
+        self.bz = prob.z0[a] - prob.z0[b]
+        self.mu = mu
+        self.dip_tol = 0.0
+
+    def unpack(self, v):
+        K = self.K
+        sigma, k_o = np.exp(v[K]), np.exp(v[K + 1])
+        if self.coated:
+            return v[:K], sigma, k_o, np.exp(v[K + 2]), np.exp(v[K + 3])
+        return v[:K], sigma, k_o, k_o, 0.0
+
+    def penalty(self, c):
+        # a dip of up to ``dip_tol`` px is allowed: a hard monotone constraint would bend a
+        # flat, noisy apex into a bowl (a rounder tip, n biased low)
+        dz = self.Az @ c + self.bz + self.dip_tol
         neg = dz < 0
-        r_ = np.concatenate([np.sqrt(smooth_weight) * (L2 @ c), mu * np.where(neg, dz, 0.0)])
-        J_ = np.vstack([np.sqrt(smooth_weight) * L2, mu * Az * neg[:, None]])
-        return r_, J_
+        r = np.concatenate([self.L2 @ c, self.mu * np.where(neg, dz, 0.0)])
+        J = np.vstack([self.L2, self.mu * self.Az * neg[:, None]])
+        return r, J
 
-    def cost_of(vv, w, ssm):
-        B = render(vv, ssm)
-        lin = solve_lin(B, w)
-        res = (I - B @ lin) * w
-        pen = penalty(vv)[0]
-        return float(res @ res + pen @ pen), B, lin, res
+    def evaluate(self, v, ch=None):
+        c, sigma, k_o, k_c, coat = self.unpack(v)
+        if ch is None:
+            ch = self.p.chords(c, coat)
+        T = self.p.transmission(ch, k_o, k_c)
+        B = self.p.blurred(T, sigma)
+        lin = self.p.linear(B)
+        res = (self.p.I - B @ lin) * self.p.w
+        pr, _ = self.penalty(c)
+        return _State(v, float(res @ res + pr @ pr), ch, T, B, lin, res)
 
-    ssm = ss_band(v)
-    B = render(v, ssm)
-    lin = solve_lin(B, np.ones(I.size))
-    bg = float(lin[0]) if lin[0] > 0 else float(np.median(I))
-    w = 1.0 / (noise * bg * np.sqrt(np.clip(B @ lin, 0.05 * bg, None) / bg))
-    cost, B, lin, res = cost_of(v, w, ssm)
-    lam = 1e-2
-    n_par = v.size
-    lb = np.full(n_par, -np.inf)
-    ub = np.full(n_par, np.inf)
-    lb[:K], ub[:K] = -4.0, 4.0
-    # globals stay near the per-normal estimates (blur, edge offset and coating are
-    # partly degenerate: a wide blur with an edge moved inwards is a local minimum)
-    lb[K + 2], ub[K + 2] = v[K + 2] + np.log(0.6), v[K + 2] + np.log(1.6)
-    lb[K + 3], ub[K + 3] = v[K + 3] + np.log(0.1), v[K + 3] + np.log(10.0)
-    if coat_on:
-        lb[K + 4], ub[K + 4] = v[K + 4] + np.log(0.1), v[K + 4] + np.log(10.0)
-        lb[K + 5], ub[K + 5] = v[K + 5] + np.log(0.5), v[K + 5] + np.log(2.0)
-    max_step = np.array([0.5] * K + [0.5, 0.01, 0.1, 0.2] + ([0.2, 0.15] if coat_on else []))
+    def jacobian(self, st: _State, with_shape=True):
+        """Weighted Jacobian of the residuals: G (Npix,), the column of a uniform outward
+        offset of the whole curve (shape columns are phi_k(S_i) G_i, local translation), and
+        the dense columns of the globals and the linear parameters, with their names."""
+        p = self.p
+        c, sigma, k_o, k_c, coat = self.unpack(st.v)
+        M0 = st.B @ st.lin
 
-    def lm(v, cost, B, lin, res, ssm, active, iters, lam=1e-2):
-        """Levenberg-Marquardt over the ``active`` nonlinear parameters (+ the linear ones)."""
-        act = np.nonzero(active)[0]
-        JTJ, it = None, 0
+        def col(B):
+            return -(B @ st.lin - M0) * p.w
+
+        G = None
+        if with_shape:
+            eps = 0.05
+            ch = p.chords(c + eps, coat)  # partition of unity: all c + eps = uniform offset
+            G = col(p.blurred(p.transmission(ch, k_o, k_c), sigma)) / eps
+        e = 0.02
+        cols = [col(p.blurred(st.T, sigma * np.exp(e))) / e]
+        names = ["log_sigma"]
+        if self.coated:
+            cols.append(col(p.blurred(p.transmission(st.ch, k_o * np.exp(e), k_c), sigma)) / e)
+            cols.append(col(p.blurred(p.transmission(st.ch, k_o, k_c * np.exp(e)), sigma)) / e)
+            ch = p.chords(c, coat * np.exp(e))
+            cols.append(col(p.blurred(p.transmission(ch, k_o, k_c), sigma)) / e)
+            names += ["log_k_o", "log_k_c", "log_coat"]
+        else:
+            cols.append(col(p.blurred(p.transmission(st.ch, k_o * np.exp(e), k_o * np.exp(e)), sigma)) / e)
+            names.append("log_k_o")
+        Jo = np.column_stack(cols + [-st.B * p.w[:, None]])
+        return G, Jo, names + ["lin_a", "lin_row", "lin_col"]
+
+    def normal_equations(self, st, shape_mode):
+        """J^T J and J^T r over (shape..., globals, linear) incl. the penalty."""
+        p, K = self.p, self.K
+        G, Jo, names = self.jacobian(st, shape_mode != "none")
+        pr, pj = self.penalty(st.v[:K])
+        if shape_mode == "full":
+            PG = p.Phi.multiply(G[:, None]).tocsr()
+            Ass = (PG.T @ PG).toarray() + pj.T @ pj
+            Aso = np.asarray(PG.T @ Jo)
+            gs = np.asarray(PG.T @ st.res).ravel() + pj.T @ pr
+            names = [f"c{k}" for k in range(K)] + names
+        elif shape_mode == "uniform":
+            ps = pj.sum(1)
+            Ass = np.array([[G @ G + ps @ ps]])
+            Aso = (G @ Jo)[None, :]
+            gs = np.array([G @ st.res + ps @ pr])
+            names = ["offset"] + names
+        else:
+            Ass, Aso, gs = np.zeros((0, 0)), np.zeros((0, Jo.shape[1])), np.zeros(0)
+        JTJ = np.block([[Ass, Aso], [Aso.T, Jo.T @ Jo]])
+        grad = np.concatenate([gs, Jo.T @ st.res])
+        return JTJ, grad, names, Ass.shape[0], Jo.shape[1] - 3
+
+    def run(self, v, shape_mode, iters, lb, ub, max_step, lam=1e-2, tol=1e-5):
+        """LM iterations; shape_mode "full" (all c_k), "uniform" (one common offset: all c_k
+        equal) or "none"."""
+        K = self.K
+        st = self.evaluate(v)
+        JTJ, it, names = None, 0, []
         for it in range(1, iters + 1):
-            J = np.zeros((I.size, n_par))
-            if active[:K].any():
-                D, cols = groups(v)
-                for g in cols:
-                    vv = v.copy()
-                    vv[g] += steps[g]
-                    dB = (render(vv, ssm) - B) @ lin
-                    owner = np.full(I.size, -1)
-                    for k in g:
-                        owner[D[:, k]] = k
-                    ok = owner >= 0
-                    J[ok, owner[ok]] = -dB[ok] * w[ok] / steps[owner[ok]]
-            for k in act[act >= K]:
-                vv = v.copy()
-                vv[k] += steps[k]
-                J[:, k] = -((render(vv, ssm) - B) @ lin) * w / steps[k]
-            cols_ = np.concatenate([act, n_par + np.arange(3)])
-            Jf = np.hstack([J, -B * w[:, None]])[:, cols_]
-            pr, pj = penalty(v)
-            Lp = np.hstack([pj, np.zeros((pj.shape[0], n_par - K + 3))])[:, cols_]
-            JTJ = Jf.T @ Jf + Lp.T @ Lp
-            g_ = Jf.T @ res + Lp.T @ pr
-            improved, dc, st = False, 0.0, np.zeros(n_par)
+            if shape_mode == "full" and self.p.map_stale(st.v[:K], self.unpack(st.v)[4]):
+                self.p.update_pixel_map(st.v[:K], self.unpack(st.v)[4])
+            JTJ, grad, names, nsh, ng = self.normal_equations(st, shape_mode)
+            improved, dc, dv = False, 0.0, np.zeros_like(v)
+            # parameters at a bound whose descent direction points outwards are held fixed
+            pv = np.concatenate([st.v[:K] if shape_mode == "full" else st.v[:1] if nsh else [], st.v[K:K + ng]])
+            plb = np.concatenate([lb[:nsh], lb[K:K + ng]])
+            pub = np.concatenate([ub[:nsh], ub[K:K + ng]])
+            held = np.zeros(grad.size, bool)
+            held[: nsh + ng] = ((pv <= plb + 1e-9) & (grad[: nsh + ng] > 0)) | ((pv >= pub - 1e-9) & (grad[: nsh + ng] < 0))
             for _ in range(6):
                 A = JTJ + lam * np.diag(np.diag(JTJ) + 1e-12)
+                A[held, :] = 0.0
+                A[:, held] = 0.0
+                A[held, held] = 1.0
                 try:
-                    step = -np.linalg.solve(A, g_)
+                    step = -np.linalg.solve(A, np.where(held, 0.0, grad))[: nsh + ng]
                 except np.linalg.LinAlgError:
                     lam *= 10
                     continue
-                st = np.zeros(n_par)
-                st[act] = step[:act.size]
-                st = st * min(1.0, float(np.min(max_step / (np.abs(st) + 1e-300))))  # trust region
-                vn = np.clip(v + st, lb, ub)
-                cn_, Bn, linn, resn = cost_of(vn, w, ssm)
-                if cn_ < cost:
-                    dc = cost - cn_
-                    v, cost, B, lin, res = vn, cn_, Bn, linn, resn
-                    lam = max(lam / 5, 1e-6)
+                dv = np.zeros_like(st.v)
+                dv[:K] = step[:K] if shape_mode == "full" else (step[0] if nsh else 0.0)
+                dv[K:K + ng] = step[nsh:]
+                dv *= min(1.0, float(np.min(max_step / (np.abs(dv) + 1e-300))))
+                vn = np.clip(st.v + dv, lb, ub)
+                sn = self.evaluate(vn)
+                if sn.cost < st.cost:
+                    dc = st.cost - sn.cost
+                    st = sn
+                    lam = max(lam / 5, 1e-7)
                     improved = True
                     break
                 lam *= 8
-            if not improved or (dc < 1e-5 * cost and np.max(np.abs(st[:K + 2])) < 5e-3):
+            if not improved or (dc < tol * st.cost and np.max(np.abs(dv[:K])) < 5e-3):
                 break
-            moved = np.max(np.abs(model.basis @ (v[:K] - band_v[0][:K]))) + abs(v[K] - band_v[0][K]) * 2
-            if moved > 0.4:
-                ssm = ss_band(v)
-                band_v[0] = v.copy()
-                cost, B, lin, res = cost_of(v, w, ssm)
-        return v, cost, B, lin, res, ssm, JTJ, it, act
+        return st, JTJ, names, it
 
-    band_v = [v.copy()]
-    glob = np.zeros(n_par, bool)
-    glob[K:] = True
-    v, cost, B, lin, res, ssm, JTJ, it0, act = lm(v, cost, B, lin, res, ssm, glob, 8)
-    w = 1.0 / (noise * bg * np.sqrt(np.clip(B @ lin, 0.05 * bg, None) / bg))  # re-weight
-    cost, B, lin, res = cost_of(v, w, ssm)
-    v, cost, B, lin, res, ssm, JTJ, it, act = lm(v, cost, B, lin, res, ssm, np.ones(n_par, bool), max_iter)
-    it += it0
 
-    p = _unpack(v, K, coat_on)
-    dof = max(1, I.size - n_par - 3)
-    chi2 = float(res @ res) / dof
-    stderr = {}
-    flags = []
+def _axis_attenuation(img, frame, curve, background=1.0):
+    """k (1/px) from the transmission on the axis 6-30 px above the apex (blur-free zone)."""
+    S, x, z, _, _ = curve
+    body = _Body(x, z, 0.0)
+    zg = body.zg
+    ok = (body.rho > 5) & (zg - zg[0] > 6) & (zg - zg[0] < 30)
+    if ok.sum() < 5:
+        return float("nan")
+    pts = frame.to_image(body.cen[ok], zg[ok])
+    I = ndimage.map_coordinates(img, pts.T, order=1, mode="nearest")
+    T = np.clip(I / background, 1e-3, 0.999)
+    return float(np.median(-np.log(T) / (2 * body.rho[ok])))
+
+
+def _bin(img, b):
+    """b x b block average (trailing rows/cols dropped); binned pixel i = fine b i + (b - 1)/2."""
+    if b <= 1:
+        return img
+    h, w = (img.shape[0] // b) * b, (img.shape[1] // b) * b
+    return img[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
+
+
+def bin_factor(pixel_size, min_px=0.2e-9):
+    """Block size for the fit: pixels finer than ``min_px`` are averaged in b x b blocks
+    (the edge is then still sampled at <= 2 x min_px; precision is set by the noise and
+    the number of pixels along the edge, not by their size)."""
+    if not pixel_size:
+        return 1
+    return int(max(1, np.floor(min_px / pixel_size + 1e-6)))
+
+
+def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, coat_hint=None,
+                   knot_nm=None, max_iter=25, binning=None) -> GlobalFit:
+    """Fit the silhouette model (module doc) to ``flat`` (window with the background
+    flattened to 1, tip pointing down), starting from ``contour`` (iso-line outside the
+    surface, window px) in ``frame``; ``hpx`` profile height (px), ``noise`` background
+    noise (relative); ``coat_hint`` None (auto), 0 (none) or a thickness (px).
+    ``binning``: block size (default ``bin_factor(pixel_size)``); results are in the
+    pixels of ``flat``."""
+    b = int(binning or bin_factor(pixel_size))
+    if b > 1:
+        off = 0.5 * (b - 1)
+        gf = fit_silhouette(_bin(np.asarray(flat, float), b), (np.asarray(contour) - off) / b,
+                            TipFrame((frame.apex - off) / b, frame.angle), hpx / b, noise / b,
+                            pixel_size * b, None if coat_hint is None else coat_hint / b, knot_nm, max_iter,
+                            binning=1)
+        gf.points = gf.points * b + off
+        gf.frame = TipFrame(gf.frame.apex * b + off, gf.frame.angle)
+        gf.cov_c = gf.cov_c * b**2
+        gf.sigma_px, gf.coat_px = gf.sigma_px * b, gf.coat_px * b
+        gf.k_outer, gf.k_core = gf.k_outer / b, gf.k_core / b
+        gf.binning = b
+        return gf
+    flat = np.asarray(flat, float)
+    knot_nm = knot_nm if knot_nm is not None else KNOT_NM
+    knot = float(np.clip(knot_nm * 1e-9 / pixel_size if pixel_size else 6.0, 4.0, 16.0))
+    # the reference must be smooth on the knot scale: its finer wiggles (contour noise)
+    # would pass straight into the result, the spline offsets correct the large scales
+    curve = reference_curve(frame.to_tip(contour), smooth_px=1.5 * knot)
+    # noise floor 0.2 % of the background: model error of the forward model (noise-free images)
+    prob = _Problem(flat, frame, curve, hpx, max(float(noise or 0.0), 2e-3), knot)
+    K = prob.K
+    k_ax = _axis_attenuation(flat, frame, curve)
+    k0 = k_ax if np.isfinite(k_ax) and k_ax > 0 else 0.02
+    max_coat = 12.0
+
+    def bounds(coated):
+        lb = [-6.0] * K + [np.log(0.25), np.log(k0 * 0.05)]
+        ub = [6.0] * K + [np.log(4.0), np.log(k0 * 20)]
+        ms = [0.6] * K + [0.25, 0.3]
+        if coated:
+            lb += [np.log(k0 * 0.05), np.log(0.5)]
+            ub += [np.log(k0 * 20), np.log(max_coat)]
+            ms += [0.3, 0.25]
+        return np.array(lb), np.array(ub), np.array(ms)
+
+    n_it = 0
+    # 1) single layer, uniform offset from the contour + globals, two blur starts
+    f1 = _Fitter(prob, coated=False)
+    lim1 = bounds(False)
+    best = None
+    for sg in (0.8, 2.0):
+        v = np.concatenate([np.full(K, -1.0), [np.log(sg), np.log(k0)]])
+        st, _, _, it = f1.run(v, "uniform", 8, *lim1, tol=1e-4)
+        n_it += it
+        if best is None or st.cost < best.cost:
+            best = st
+    prob.set_weights(best.B @ best.lin)
+    # 2) single layer, full shape; then again relative to the fitted shape (the penalty
+    #    on the offsets' curvature would otherwise keep the contour's rounded corners)
+    st1, _, _, it = f1.run(best.v, "full", max_iter, *lim1)
+    n_it += it
+    prob.rebase(st1.v[:K])
+    glob = st1.v[K:]
+    K = prob.K
+    f1 = _Fitter(prob, coated=False)
+    lim1 = bounds(False)
+    st1, JTJ1, names1, it = f1.run(np.concatenate([np.zeros(K), glob]), "full", max_iter, *lim1)
+    n_it += it
+    result = (f1, st1, JTJ1, names1)
+    coat_test = {"model": "single"}
+    if coat_hint is None or coat_hint > 0:
+        # 3) coated, with the single-layer shape moved outwards uniformly (cheap test)
+        f2 = _Fitter(prob, coated=True)
+        lim2 = bounds(True)
+        c1, sg1, ko1, _, _ = f1.unpack(st1.v)
+        best2 = None
+        for ct in ([coat_hint] if coat_hint else [2.0, 4.0, 8.0]):
+            ct = float(np.clip(ct, 0.6, max_coat * 0.95))
+            v = np.concatenate([c1 + 0.5 * ct, [np.log(sg1), np.log(ko1 * 0.3), np.log(ko1 * 1.2), np.log(ct)]])
+            st = f2.evaluate(np.clip(v, lim2[0] + 1e-6, lim2[1] - 1e-6))
+            if best2 is None or st.cost < best2.cost:
+                best2 = st
+        u2, _, _, it = f2.run(best2.v, "uniform", 6, *lim2, tol=1e-4)
+        n_it += it
+        _, _, ko2, kc2, coat2 = f2.unpack(u2.v)
+        d_uniform = st1.cost - u2.cost
+        coat_test["dchi2_uniform"] = float(d_uniform)
+        if coat_hint or (d_uniform > COAT_DCHI2 and 0.1 * kc2 < ko2 < 0.8 * kc2 and coat2 > 0.6):
+            # 4) coated, full shape; kept if it beats the single layer by the threshold
+            st2, JTJ2, names2, it = f2.run(u2.v, "full", max_iter, *lim2)
+            n_it += it
+            _, _, ko2, kc2, coat2 = f2.unpack(st2.v)
+            dchi2 = st1.cost - st2.cost
+            physical = 0.1 * kc2 < ko2 < 0.8 * kc2 and coat2 > 0.6
+            coat_test.update(dchi2=float(dchi2), threshold=COAT_DCHI2, physical=bool(physical))
+            if coat_hint or (dchi2 > COAT_DCHI2 and physical):
+                result = (f2, st2, JTJ2, names2)
+                coat_test["model"] = "coated"
+    fitter, st, JTJ, names = result
+    prob.map_c = None
+    return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test)
+
+
+def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test):
+    c, sigma, k_o, k_c, coat = fitter.unpack(st.v)
+    K = prob.K
+    dof = max(1, prob.idx.size - len(names))
+    chi2 = float(st.res @ st.res) / dof
+    flags, stderr = [], {}
     try:
-        cov = np.linalg.inv(JTJ) * chi2 if JTJ is not None else None
+        cov = np.linalg.inv(JTJ) * max(chi2, 1.0)
     except np.linalg.LinAlgError:
-        cov = None
-    if cov is not None:
-        sd_ = np.sqrt(np.clip(np.diag(cov)[:act.size], 0, None))
-        stderr = {nm: float(x) for nm, x in zip(names, sd_) if not nm.startswith("c")}
-        stderr["delta_max"] = float(np.max(sd_[:K]))
-        if coat_on:
-            rel_c, rel_k = sd_[K + 5], sd_[K + 4]
-            at_bound = np.any(v[K + 2:] >= ub[K + 2:] - 1e-6) or np.any(v[K + 2:] <= lb[K + 2:] + 1e-6)
-            if rel_c > 0.3 or rel_k > 0.3 or at_bound:
-                flags.append(f"coating not identifiable (rel. s.e. thickness {rel_c:.2f}, core k {rel_k:.2f})")
-    hit = np.nonzero(np.abs(v[:K]) >= 3.99)[0]
-    if hit.size:
-        flags.append(f"edge offset hit its bound (+-4 px) at knots {hit.tolist()} of {K}")
-
-    # ---- output: outer silhouette, both flanks, 1 px apart, left -> apex -> right
-    r, z = model.curve(p["c"])
-    fr = model.frame(p)
-    z = np.maximum.accumulate(z)  # as in the body model
+        cov = np.full(JTJ.shape, np.nan)
+        flags.append("singular silhouette covariance")
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    for nm, s in zip(names, sd):
+        if not nm.startswith("c"):
+            stderr[nm] = float(s)
+    cov_c = cov[:K, :K]
+    if fitter.coated:
+        if stderr.get("log_coat", 0) > 0.3 or stderr.get("log_k_c", 0) > 0.3:
+            flags.append(f"coating not identifiable (rel. s.e. thickness {stderr.get('log_coat', np.nan):.2f})")
+    # output: outer silhouette at 1 px spacing in arc length, z <= 1.3 x profile height
+    x, z = prob.curve(c)
+    S = prob.S
     sel = z <= 1.3 * hpx
-    r, z = r[sel], z[sel]
-    sa = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(r), np.diff(z)))])
-    so = np.arange(0.0, sa[-1], 1.0)
-    ro, zo = np.interp(so, sa, r), np.interp(so, sa, z)
-    xo = np.concatenate([-ro[:0:-1], ro])
-    zo = np.concatenate([zo[:0:-1], zo])
-    pts_out = fr.to_image(xo, zo)
-    nrm = np.column_stack([np.gradient(pts_out[:, 1]), -np.gradient(pts_out[:, 0])])
-    nrm /= np.hypot(*nrm.T)[:, None] + 1e-12
-    edge = EdgeFit(pts_out, nrm, np.ones(len(pts_out), bool), float(p["k_o"]), float(p["k_c"]),
-                   float(p["coat"]), float(p["sigma"]), float(np.sqrt(np.mean((res / w) ** 2))),
-                   np.full(len(pts_out), float(lin[0])))
-    params = dict(sigma_px=float(p["sigma"]), k_outer=float(p["k_o"]), k_core=float(p["k_c"]),
-                  coat_px=float(p["coat"]), axis_shift_px=float(p["x0"]), axis_rot_rad=float(p["dth"]),
-                  apex_shift_px=float(-(model.basis[0] @ p["c"])), knot_px=knot, n_knots=K,
-                  background=bg, gradient=lin[1:].tolist())
-    return GlobalFit(edge, fr, params, stderr, flags, int(I.size), it, chi2)
+    i = np.nonzero(sel)[0]
+    i = np.arange(i.min(), i.max() + 1)
+    s_arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x[i]), np.diff(z[i])))])
+    so = np.arange(0.0, s_arc[-1], 1.0)
+    xo, zo = np.interp(so, s_arc, x[i]), np.interp(so, s_arc, z[i])
+    Sg = np.interp(so, s_arc, S[i])
+    basis = _bspline(Sg[:, None] / prob.knot - prob.kc[None, :])
+    nxo, nzo = np.interp(Sg, S, prob.nx), np.interp(Sg, S, prob.nz)
+    pts = prob.frame.to_image(xo, zo)
+    nrm = np.column_stack([nxo * prob.frame.v[0] + nzo * prob.frame.u[0], nxo * prob.frame.v[1] + nzo * prob.frame.u[1]])
+    hit = np.nonzero(np.abs(c) >= 5.99)[0]
+    if hit.size:
+        flags.append(f"edge offset hit its bound (+-6 px) at {hit.size} of {K} knots")
+    rms = float(np.sqrt(np.mean((st.res / prob.w) ** 2)))
+    return GlobalFit(pts, nrm, basis, cov_c, prob.frame, float(sigma), float(k_o), float(k_c), float(coat), rms,
+                     chi2, int(prob.idx.size), int(n_it), stderr, flags, coat_test)

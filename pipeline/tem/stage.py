@@ -52,17 +52,20 @@ def write_profile_h5(out_h5, image, profile, tip="", interval=""):
         w(g, "rotation", profile.angle, "rad", "tilt of the axis, counter-clockwise, apex-down view")
         w(g, "orientation", profile.orientation, "1", "apex pointing down or up in the image")
         pg = h5io.create_group(f, "profile", description="z(r), apex at z = 0, z away from the sample")
-        for which in ("left", "right"):
-            r, z = profile.flank_rz(which)
-            sg = h5io.create_group(pg, which)
-            w(sg, "r", r, "m", "distance from the axis")
-            w(sg, "z", z, "m", "height above the apex")
-        m = profile.z <= profile.profile_height
-        o = np.argsort(profile.z[m], kind="stable")
-        sg = h5io.create_group(pg, "combined")
-        w(sg, "r", np.abs(profile.x[m])[o], "m", "distance from the axis, both flanks")
-        w(sg, "z", profile.z[m][o], "m", "height above the apex")
-        w(sg, "flank", profile.flank[m][o].astype(np.int8), "1", "-1 left, +1 right")
+        if profile.offset_cov is not None:
+            w(pg, "offset_cov", profile.offset_cov, "m^2",
+              "covariance of the edge-offset B-spline coefficients c_k (silhouette fit, marginal)")
+        for which, name in (("left", "left"), ("right", "right"), ("both", "combined")):
+            i = profile.flank_index(which)
+            sg = h5io.create_group(pg, name)
+            w(sg, "r", np.abs(profile.x[i]), "m", "distance from the axis" + (", both flanks" if which == "both" else ""))
+            w(sg, "z", profile.z[i], "m", "height above the apex")
+            if which == "both":
+                w(sg, "flank", profile.flank[i].astype(np.int8), "1", "-1 left, +1 right")
+            if profile.offset_basis is not None:
+                w(sg, "offset_basis", profile.offset_basis[i], "1",
+                  "normal offset of each point = offset_basis @ c (c: see ../offset_cov)")
+                w(sg, "normal_rz", profile.normal_rz[i], "1", "outward unit normal (n_r, n_z) of each point")
         g = h5io.create_group(f, "asymmetry")
         w(g, "mean", profile.asymmetry_mean, "m", "mean r_right - r_left at equal z")
         w(g, "rms", profile.asymmetry_rms, "m", "RMS of r_right - r_left at equal z")
@@ -72,5 +75,19 @@ def write_profile_h5(out_h5, image, profile, tip="", interval=""):
         w(g, "attenuation_core", em["k_core_per_m"], "1/m")
         w(g, "coating_thickness", em["coating_thickness"], "m", "0 = single layer")
         w(g, "blur_sigma", em["blur_sigma"], "m", "Gaussian blur sigma (incl. pixel box)")
-        w(g, "rms_intensity", em["rms_intensity"], "1", "median per-normal RMS intensity residual")
+        w(g, "rms_intensity", em["rms_intensity"], "1", "RMS intensity residual relative to the background")
         w(g, "n_rejected", em["n_rejected"], "1", "edge points rejected")
+        g.attrs["refine"] = em.get("refine", "normals")
+        flags = list(em.get("global_flags", []))
+        w(g, "flags", np.array(flags, dtype=object) if flags else np.array([], dtype=object), "1",
+          "edge-model warnings (e.g. coating not identifiable)")
+        ct = em.get("coating_test") or {}
+        if ct:
+            g.attrs["coating_model"] = ct.get("model", "")
+            for key in ("dchi2", "dchi2_uniform"):
+                if key in ct:
+                    w(g, f"coating_{key}", ct[key], "1",
+                      "chi^2(single layer) - chi^2(coated)" + (" at a uniform offset" if key.endswith("uniform") else ""))
+        if "global_chi2_red" in em:
+            w(g, "chi2_reduced", em["global_chi2_red"], "1", "reduced chi^2 of the silhouette fit")
+            w(g, "n_pixels", em["global_n_pixels"], "1", "pixels in the silhouette fit")

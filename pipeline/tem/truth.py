@@ -74,7 +74,7 @@ def evaluate_case(n, pixel_size, blur_sigma_px=1.0, edge_snr=20.0, rotation_deg=
     """Render a synthetic image with known truth, extract + fit; return the error metrics (SI)."""
     import time
 
-    from pipeline.fits import fit_power_law
+    from pipeline.fits import fit_tip_profile
     from pipeline.synth.tem_image import render_tem_image
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import TemImage
@@ -91,10 +91,7 @@ def evaluate_case(n, pixel_size, blur_sigma_px=1.0, edge_snr=20.0, rotation_deg=
     prof = extract_profile(TemImage(img.astype(np.float64), pixel_size, "synthetic"),
                            profile_height=profile_height)
     t_prof = time.perf_counter() - t0
-    r, z = prof.flank_rz("both")
-    m = prof.z <= prof.profile_height
-    groups = prof.flank[m][np.argsort(prof.z[m], kind="stable")]
-    fit = fit_power_law(r, z, fit_height, pixel_size=pixel_size, groups=groups)
+    fit = fit_tip_profile(prof, fit_height)
     pe = profile_errors(prof, truth, fit_height)
     fe = force_errors(fit.n, fit.Q, truth)
     return dict(truth=truth, profile=prof, fit=fit, t_profile=t_prof, rms_normal=pe["rms_normal"],
