@@ -55,6 +55,16 @@ def test_noise_free_edge_is_unbiased():
     assert abs(e["bias"]) < 0.01 * NM and e["rms_normal"] < 0.02 * NM
 
 
+def test_blunt_tip_axis_and_shape():
+    """A blunt tip (n = 5.4, R = 30 nm, like sample tip A's last interval): the axis is the
+    mirror line of the silhouette (cut midpoints have almost no lever arm on such a tip and
+    had walked 1.4 deg off, bending the flat bottom and biasing n by -0.18)."""
+    e = evaluate_case(5.4, 0.25e-9, 1.2, np.inf, 4.0, 15e-9, seed=0, R=30e-9)
+    assert abs(e["axis_deg_err"]) < 0.05
+    assert abs(e["dn"]) < 0.03 and e["rms_normal"] < 0.01 * NM
+    assert e["fit"].fit_error_percent < 0.2
+
+
 def test_contamination_far_above_apex_is_ignored():
     e = evaluate_case(3.0, 0.3e-9, 1.0, 20.0, 4.0, 0.0, seed=5, contamination=True, contamination_height=30e-9)
     _check(e)

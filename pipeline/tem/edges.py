@@ -138,13 +138,34 @@ def locate_tip(img, max_height_px, orientation="auto"):
     return CoarseTip(apex, float(theta), 1.0, dark_level, width, bbox), flipped
 
 
-def _robust_slope(h, m):
+def axis_tilt(z, left, right, keep=None):
+    """Tilt (rad, small) and offset (px) of a body's axis from its silhouette x at cuts z.
+
+    For an axis tilted by d_theta from the cut normal, the midpoint of the cut at
+    height z is a + d_theta (z + r dr/dz) to first order (r = half width): the two
+    flanks are sampled at heights shifted by -+ r d_theta.  The plain slope of the
+    midpoints is biased by the factor 1 + d(r dr/dz)/dz, negative for flat tips
+    (r dr/dz falls with z for n > 2), so a fixed-point iteration on it runs away from
+    the axis.  r dr/dz = d(r^2)/dz / 2 from a cubic fit of r^2(z) over the ``keep``
+    cuts.  Returns (tilt, offset, residuals of all midpoints)."""
+    keep = np.ones(z.size, bool) if keep is None else keep
+    mid, r = 0.5 * (left + right), 0.5 * (right - left)
+    z0 = z[keep].mean()
+    deg = int(min(3, keep.sum() - 2))
+    rr_p = 0.5 * np.polyval(np.polyder(np.polyfit(z[keep] - z0, r[keep] ** 2, deg)), z - z0)
+    A = np.column_stack([np.ones_like(z), z + rr_p])
+    (off, tilt), *_ = np.linalg.lstsq(A[keep], mid[keep], rcond=None)
+    return float(tilt), float(off), mid - A @ [off, tilt]
+
+
+def _robust_slope(h, m, r):
+    """``axis_tilt`` from cut midpoints ``m`` and half widths ``r``, outliers
+    (contamination) rejected."""
     keep = np.ones(h.size, bool)
     for _ in range(3):
-        c = np.polyfit(h[keep], m[keep], 1)
-        res = m - np.polyval(c, h)
+        tilt, _, res = axis_tilt(h, m - r, m + r, keep)
         keep = np.abs(res) <= max(1.0, 3 * 1.4826 * np.median(np.abs(res[keep])))
-    return c[0]
+    return tilt
 
 
 def _perpendicular_cut_axis(mask, apex_r, apex_c, theta, hgt, iters=6):
@@ -169,7 +190,8 @@ def _perpendicular_cut_axis(mask, apex_r, apex_c, theta, hgt, iters=6):
         if sel.sum() < 10:
             break
         b = np.floor(z[sel]).astype(int)
-        b -= b.min()
+        b_min = b.min()
+        b -= b_min
         lo = np.full(b.max() + 1, np.inf)
         hi = np.full(b.max() + 1, -np.inf)
         np.minimum.at(lo, b, x[sel])
@@ -177,8 +199,8 @@ def _perpendicular_cut_axis(mask, apex_r, apex_c, theta, hgt, iters=6):
         ok = np.isfinite(lo) & np.isfinite(hi) & (hi - lo > 2)
         if ok.sum() < 5:
             break
-        zz = np.nonzero(ok)[0].astype(float)
-        step = np.arctan(_robust_slope(zz, 0.5 * (lo[ok] + hi[ok])))
+        zz = np.nonzero(ok)[0].astype(float) + b_min
+        step = np.arctan(_robust_slope(zz, 0.5 * (lo[ok] + hi[ok]), 0.5 * (hi[ok] - lo[ok])))
         theta += step
         if abs(step) < 1e-4:
             break

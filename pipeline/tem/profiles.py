@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.tem.edges import TipFrame, _Fail, flatten_background, initial_contour, locate_tip, refine_edges
+from pipeline.tem.edges import (TipFrame, _Fail, curve_normals, flatten_background, initial_contour, locate_tip,
+                                refine_edges)
 from pipeline.tem.errors import ApexAtBorderError, NoTipError
 from pipeline.tem.reading import TemImage
 
@@ -255,25 +256,57 @@ def _extent(x, z, levels, max_gap=4.0):
     return out
 
 
-def _symmetry_frame(pts, frame, hpx, iters=25, max_dev=np.radians(0.5)):
-    """Axis = line through the midpoints of the left/right silhouette at equal height
-    (0.3-1 x profile_height above the lowest point; damped updates of at most 3 deg,
-    at most ``max_dev`` from the starting (coarse, long-range) axis);
-    apex = lowest crossing of the silhouette with the axis."""
+def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
+    """Axis = mirror line of the silhouette: the line about which the reflected edge
+    points (up to ``profile_height`` above the lowest point) fall onto the silhouette,
+    by Gauss-Newton on their normal distances (at most ``max_dev`` from the starting,
+    coarse long-range axis).  Every point counts along its normal, so the flat bottom
+    of a blunt tip pins the tilt (cut midpoints have almost no lever arm there).
+    Apex = lowest crossing of the silhouette with the axis."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(pts, float)
     a0 = frame.angle
-    for _ in range(iters):
+    for _ in range(3):
         x, z = frame.to_tip(pts)
-        zz = np.linspace(0.3 * hpx, hpx, 40) + z.min()
-        ext = _extent(x, z, zz)
+        tgt = np.column_stack([x, z])
+        nrm, _ = curve_normals(tgt, smooth=2.0)
+        tree = cKDTree(tgt)
+        sel = np.nonzero(z - z.min() <= hpx)[0]
+
+        def resid(p):
+            a, t = p
+            # reflect about the line x = a + t z (direction (t, 1) / |.|)
+            d = np.array([t, 1.0]) / np.hypot(t, 1.0)
+            q = tgt[sel] - [a, 0.0]
+            proj = (q @ d)[:, None] * d
+            refl = 2 * proj - q + [a, 0.0]
+            _, j = tree.query(refl)
+            ok = (j > 0) & (j < len(tgt) - 1)
+            return np.where(ok, np.einsum("ij,ij->i", refl - tgt[j], nrm[j]), np.nan)
+
+        # start: the axis through the mean midpoint of cuts 0.3-1 x hpx up (the coarse
+        # apex of a blunt tip can sit anywhere on its flat bottom)
+        ext = _extent(x, z, np.linspace(0.3 * hpx, hpx, 20) + z.min())
         ok = np.isfinite(ext[:, 0])
-        if ok.sum() < 5:
-            break
-        mid = ext[ok].mean(axis=1)
-        slope, off = np.polyfit(zz[ok], mid, 1)
-        d_ang = float(np.clip(np.arctan(slope), -np.radians(3), np.radians(3)))
-        d_ang = float(np.clip(frame.angle + d_ang, a0 - max_dev, a0 + max_dev)) - frame.angle
-        frame = TipFrame(frame.to_image(off, 0.0), frame.angle + d_ang)
-        if abs(d_ang) < 1e-5 and abs(off) < 1e-3:
+        p = np.array([float(ext[ok].mean()) if ok.any() else 0.0, 0.0])
+        for it in range(12):
+            r = resid(p)
+            J = np.column_stack([(resid(p + e) - r) / e[k] for k, e in enumerate(np.diag([1e-3, 1e-5]))])
+            good = np.isfinite(r) & np.isfinite(J).all(1)
+            if good.sum() < 10:
+                break
+            if it >= 4:  # outliers (contamination, a notch) only once the axis is close
+                mad = 1.4826 * np.median(np.abs(r[good])) + 1e-9
+                good &= np.abs(r) <= max(4 * mad, 0.5)
+            step, *_ = np.linalg.lstsq(J[good], -r[good], rcond=None)
+            p += step
+            if it >= 4 and abs(step[1]) < 1e-6 and abs(step[0]) < 1e-3:
+                break
+        off, t = p
+        ang = float(np.clip(frame.angle + np.arctan(t), a0 - max_dev, a0 + max_dev))
+        frame = TipFrame(frame.to_image(off, 0.0), ang)
+        if abs(np.arctan(t)) < 1e-5 and abs(off) < 1e-3:
             break
     x, z = frame.to_tip(pts)
     zc = _crossings(z, x, 0.0)
