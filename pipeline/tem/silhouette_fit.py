@@ -31,7 +31,11 @@ Coating: "auto" fits the single-layer model and the coated one (from a few
 starting thicknesses) and keeps the coated model only if it lowers chi^2 by more
 than ``COAT_DCHI2`` (likelihood ratio, 2 extra parameters) with physical values;
 a coated fit whose thickness has a relative standard error > 30 % is flagged
-"coating not identifiable".
+"coating not identifiable".  A layer that lowers chi^2 by more than
+``AMBIGUOUS_DCHI2`` but less than ``COAT_DCHI2`` is neither found nor excluded (thin
+light oxide, low SNR, blur trading against the layer): the single-layer edge is
+kept, flagged "coating ambiguous", and its covariance widened by a common offset of
+half the coated model's outward shift.
 
 The result carries, for every output edge point, its B-spline row and the
 covariance of the c_k (marginal over all other parameters, px^2): the fit stage
@@ -54,7 +58,8 @@ __all__ = ["GlobalFit", "fit_silhouette", "reference_curve", "COAT_DCHI2"]
 _SS = 4
 _SUB = (np.arange(_SS) + 0.5) / _SS - 0.5
 KNOT_NM = 1.2  # knot spacing of the edge-offset spline (nm)
-COAT_DCHI2 = 30.0  # chi^2 decrease needed to accept a coating layer (2 extra parameters)
+COAT_DCHI2 = 10.0  # chi^2 decrease needed to accept a coating layer (2 extra parameters, p ~ 0.5 %)
+AMBIGUOUS_DCHI2 = 2.0  # below COAT_DCHI2 but above this: a layer is neither found nor excluded
 
 
 def _bspline(u):
@@ -599,6 +604,9 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
         _, _, ko2, kc2, coat2 = f2.unpack(u2.v)
         d_uniform = st1.cost - u2.cost
         coat_test["dchi2_uniform"] = float(d_uniform)
+        coat_test["thickness_uniform_px"] = float(coat2)
+        # outward shift of the coated model's outer edge relative to the single layer's
+        coat_test["outer_shift_px"] = float(np.mean(u2.v[:K] - c1))
         if coat_hint or (d_uniform > COAT_DCHI2 and 0.1 * kc2 < ko2 < 0.8 * kc2 and coat2 > 0.6):
             # 4) coated, full shape; kept if it beats the single layer by the threshold
             st2, JTJ2, names2, it = f2.run(u2.v, "full", max_iter, *lim2)
@@ -610,6 +618,9 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
             if coat_hint or (dchi2 > COAT_DCHI2 and physical):
                 result = (f2, st2, JTJ2, names2)
                 coat_test["model"] = "coated"
+        if (coat_test["model"] == "single" and not coat_hint and AMBIGUOUS_DCHI2 < d_uniform
+                and 0.1 * kc2 < ko2 < 0.8 * kc2 and coat2 > 0.6 and coat_test["outer_shift_px"] > 0):
+            coat_test["ambiguous"] = True
     fitter, st, JTJ, names = result
     prob.map_c = None
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test)
@@ -631,6 +642,14 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test):
         if not nm.startswith("c"):
             stderr[nm] = float(s)
     cov_c = cov[:K, :K]
+    if coat_test.get("ambiguous"):
+        # the outer edge is either the single layer's or ~outer_shift further out: widen the
+        # edge covariance by a common offset of half that shift (SD of a 50/50 mixture)
+        shift = coat_test["outer_shift_px"]
+        cov_c = cov_c + (0.5 * shift) ** 2 * np.ones((K, K))
+        flags.append(f"coating ambiguous: a light layer ({coat_test['thickness_uniform_px']:.1f} px) lowers chi^2 by "
+                     f"{coat_test['dchi2_uniform']:.1f} (< {COAT_DCHI2:g} to accept); edge may lie up to "
+                     f"{shift:.1f} px further out, edge covariance widened (set tem.coating if the layer is known)")
     if fitter.coated:
         if stderr.get("log_coat", 0) > 0.3 or stderr.get("log_k_c", 0) > 0.3:
             flags.append(f"coating not identifiable (rel. s.e. thickness {stderr.get('log_coat', np.nan):.2f})")

@@ -84,6 +84,7 @@ def write_profile_h5(out_h5, image, profile, tip="", interval=""):
         ct = em.get("coating_test") or {}
         if ct:
             g.attrs["coating_model"] = ct.get("model", "")
+            g.attrs["coating_ambiguous"] = bool(ct.get("ambiguous", False))
             for key in ("dchi2", "dchi2_uniform"):
                 if key in ct:
                     w(g, f"coating_{key}", ct[key], "1",
