@@ -267,7 +267,7 @@ def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
 
     pts = np.asarray(pts, float)
     a0 = frame.angle
-    for _ in range(3):
+    for _ in range(2):
         x, z = frame.to_tip(pts)
         tgt = np.column_stack([x, z])
         nrm, _ = curve_normals(tgt, smooth=2.0)
@@ -290,7 +290,7 @@ def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
         ext = _extent(x, z, np.linspace(0.3 * hpx, hpx, 20) + z.min())
         ok = np.isfinite(ext[:, 0])
         p = np.array([float(ext[ok].mean()) if ok.any() else 0.0, 0.0])
-        for it in range(12):
+        for it in range(9):
             r = resid(p)
             J = np.column_stack([(resid(p + e) - r) / e[k] for k, e in enumerate(np.diag([1e-3, 1e-5]))])
             good = np.isfinite(r) & np.isfinite(J).all(1)
@@ -301,12 +301,12 @@ def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
                 good &= np.abs(r) <= max(4 * mad, 0.5)
             step, *_ = np.linalg.lstsq(J[good], -r[good], rcond=None)
             p += step
-            if it >= 4 and abs(step[1]) < 1e-6 and abs(step[0]) < 1e-3:
+            if it >= 4 and abs(step[1]) < 1e-5 and abs(step[0]) < 1e-2:
                 break
         off, t = p
         ang = float(np.clip(frame.angle + np.arctan(t), a0 - max_dev, a0 + max_dev))
         frame = TipFrame(frame.to_image(off, 0.0), ang)
-        if abs(np.arctan(t)) < 1e-5 and abs(off) < 1e-3:
+        if abs(np.arctan(t)) < 1e-4 and abs(off) < 1e-2:
             break
     x, z = frame.to_tip(pts)
     zc = _crossings(z, x, 0.0)
