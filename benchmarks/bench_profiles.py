@@ -13,7 +13,11 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import time
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # the run-time target is for one core (set before numpy loads)
 
 import numpy as np
 

@@ -321,7 +321,25 @@ class _Problem:
         # the curve is sampled every 0.25 px; every 2nd point is close enough (distance error
         # <= 0.13 px, arc position <= 0.25 px)
         dec = 2
-        d, j = cKDTree(np.column_stack([x[::dec], z[::dec]])).query(np.column_stack([self.px_res, self.pz_res]))
+        xs, zs = x[::dec], z[::dec]
+        j_old = self._j_res if getattr(self, "_j_ref", None) is self.S else None
+        if j_old is None:
+            d, j = cKDTree(np.column_stack([xs, zs])).query(np.column_stack([self.px_res, self.pz_res]))
+        else:
+            # the curve moved < 1 px since the last map: search +-4 px of arc around the
+            # old nearest point; pixels whose nearest point lies on the window edge are
+            # looked up in a k-d tree
+            w = 8
+            cand = np.clip(j_old[:, None] + np.arange(-w, w + 1)[None, :], 0, xs.size - 1)
+            d2 = (xs[cand] - self.px_res[:, None]) ** 2 + (zs[cand] - self.pz_res[:, None]) ** 2
+            k = np.argmin(d2, axis=1)
+            rows = np.arange(k.size)
+            j, d = cand[rows, k], np.sqrt(d2[rows, k])
+            redo = np.nonzero(((k == 0) & (j > 0)) | ((k == 2 * w) & (j < xs.size - 1)))[0]
+            if redo.size:
+                d[redo], j[redo] = cKDTree(np.column_stack([xs, zs])).query(
+                    np.column_stack([self.px_res[redo], self.pz_res[redo]]))
+        self._j_res, self._j_ref = j, self.S
         self.dist_need = np.full(self.need.size, np.inf)
         self.dist_need[self.res_in_need] = d
         idx, val = self.spline_rows(self.S[::dec][j])
@@ -377,9 +395,8 @@ class _Problem:
         return np.column_stack([bt, bt * self.rn, bt * self.cn])
 
     def linear(self, B):
-        w = self.w
-        lin, *_ = np.linalg.lstsq(B * w[:, None], self.I * w, rcond=None)
-        return lin
+        A = B * self.w[:, None]
+        return np.linalg.solve(A.T @ A, A.T @ (self.I * self.w))  # 3 x 3 normal equations
 
     def set_weights(self, model):
         """Poisson weights 1/sd with sd = noise x sqrt(model / background) (flattened image)."""
@@ -661,12 +678,14 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
     f1 = _Fitter(prob, coated=False)
     lim1 = bounds(False)
     best = None
-    for sg in (0.8, 2.0):
+    for sg in (0.8, 2.0):  # two blur starts, 2 iterations each; the better one goes on
         v = np.concatenate([np.full(K, -1.0), [np.log(sg), np.log(k0)]])
-        st, _, _, it = f1.run(v, "uniform", 8, *lim1, tol=1e-4)
+        st, _, _, it = f1.run(v, "uniform", 2, *lim1, tol=1e-4)
         n_it += it
         if best is None or st.cost < best.cost:
             best = st
+    best, _, _, it = f1.run(best.v, "uniform", 6, *lim1, tol=1e-4)
+    n_it += it
     prob.set_weights(best.B @ best.lin)
     # 2) single layer, full shape; then again relative to the fitted shape (the penalty
     #    on the offsets' curvature would otherwise keep the contour's rounded corners)
