@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, optimize
 
-from pipeline.tem.projection import chord, eroded_radius
+from pipeline.tem.projection import chord, core_radius_table
 
 __all__ = ["CoarseTip", "locate_tip", "initial_contour", "TipFrame", "refine_edges"]
 
@@ -322,13 +322,7 @@ class BodyModel:
 
     def set_coat(self, coat_px):
         self.coat = float(coat_px)
-        if self.coat > 0:
-            pad = int(np.ceil(self.coat / self.dz)) + 1
-            zg = np.concatenate([self.zg[0] - self.dz * np.arange(pad, 0, -1), self.zg])
-            r = np.concatenate([np.full(pad, -1.0), self.rho])
-            self.rho_core = eroded_radius(zg, r, self.coat)[pad:]
-        else:
-            self.rho_core = self.rho
+        self.rho_core = core_radius_table(self.zg, self.rho, self.coat, self.dz) if self.coat > 0 else self.rho
 
     def _lookup(self, z, tables):
         """Linear interpolation on the uniform z grid (faster than np.interp); below = -1."""

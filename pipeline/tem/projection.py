@@ -44,3 +44,13 @@ def eroded_radius(z, r_outer, thickness):
         out[i0:i0 + step] = (pad[idx] - cap[None, :]).min(axis=1)
     out[~np.isfinite(out)] = -1.0
     return out
+
+
+def core_radius_table(z_grid, r_outer, thickness, dz):
+    """Core radius on the cross-section table of a body whose grid starts at its apex
+    (uniform step ``dz``): the grid is padded below the apex with no material, so the
+    erosion also lifts the core's apex by ``thickness``."""
+    pad = int(np.ceil(thickness / dz)) + 1
+    zg = np.concatenate([z_grid[0] - dz * np.arange(pad, 0, -1), z_grid])
+    r = np.concatenate([np.full(pad, -1.0), r_outer])
+    return eroded_radius(zg, r, thickness)[pad:]

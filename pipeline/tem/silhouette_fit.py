@@ -54,7 +54,7 @@ from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
 from pipeline.tem.edges import TipFrame
-from pipeline.tem.projection import chord, eroded_radius
+from pipeline.tem.projection import chord, core_radius_table
 
 __all__ = ["GlobalFit", "fit_silhouette", "reference_curve", "COAT_DCHI2"]
 
@@ -184,13 +184,7 @@ class _Body:
 
     def set_coat(self, coat):
         self.coat = float(coat)
-        if self.coat > 0:
-            pad = int(np.ceil(self.coat / self.dz)) + 1
-            zg = np.concatenate([self.zg[0] - self.dz * np.arange(pad, 0, -1), self.zg])
-            r = np.concatenate([np.full(pad, -1.0), self.rho])
-            self.rho_c = eroded_radius(zg, r, self.coat)[pad:]
-        else:
-            self.rho_c = self.rho
+        self.rho_c = core_radius_table(self.zg, self.rho, self.coat, self.dz) if self.coat > 0 else self.rho
 
     def chords(self, x, z, core=True):
         """(t_outer, t_core) at tip-frame points (px); t_core only if ``core``."""
