@@ -221,7 +221,8 @@ def flatten_background(win):
     vals = sm[bgmask]
     keep = np.ones(vals.size, bool)
     for _ in range(3):
-        coef = np.linalg.lstsq(A[keep], vals[keep], rcond=None)[0]
+        Ak = A[keep]
+        coef = np.linalg.solve(Ak.T @ Ak, Ak.T @ vals[keep])  # 3 x 3 normal equations
         res = vals - A @ coef
         s = 1.4826 * np.median(np.abs(res[keep])) + 1e-12
         keep = np.abs(res) < 3 * s

@@ -275,15 +275,24 @@ def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
         sel = np.nonzero(z - z.min() <= hpx)[0]
 
         def resid(p):
+            """Normal distances of the reflected points to the silhouette, and their
+            Jacobian w.r.t. (a, t) with the nearest silhouette points held (point-to-line
+            Gauss-Newton)."""
             a, t = p
-            # reflect about the line x = a + t z (direction (t, 1) / |.|)
-            d = np.array([t, 1.0]) / np.hypot(t, 1.0)
+            # reflect about the line x = a + t z (direction d = (t, 1) / |.|)
+            h = np.hypot(t, 1.0)
+            d = np.array([t, 1.0]) / h
+            dd = np.array([1.0, -t]) / h**3  # d(d)/dt
             q = tgt[sel] - [a, 0.0]
-            proj = (q @ d)[:, None] * d
-            refl = 2 * proj - q + [a, 0.0]
+            qd = q @ d
+            refl = 2 * qd[:, None] * d - q + [a, 0.0]
             _, j = tree.query(refl)
             ok = (j > 0) & (j < len(tgt) - 1)
-            return np.where(ok, np.einsum("ij,ij->i", refl - tgt[j], nrm[j]), np.nan)
+            nj = nrm[j]
+            r = np.where(ok, np.einsum("ij,ij->i", refl - tgt[j], nj), np.nan)
+            d_a = np.array([2.0, 0.0]) - 2.0 * d[0] * d  # d(refl)/da
+            d_t = 2.0 * ((q @ dd)[:, None] * d + qd[:, None] * dd)  # d(refl)/dt
+            return r, np.column_stack([nj @ d_a, np.einsum("ij,ij->i", d_t, nj)])
 
         # start: the axis through the mean midpoint of cuts 0.3-1 x hpx up (the coarse
         # apex of a blunt tip can sit anywhere on its flat bottom)
@@ -291,15 +300,18 @@ def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
         ok = np.isfinite(ext[:, 0])
         p = np.array([float(ext[ok].mean()) if ok.any() else 0.0, 0.0])
         for it in range(9):
-            r = resid(p)
-            J = np.column_stack([(resid(p + e) - r) / e[k] for k, e in enumerate(np.diag([1e-3, 1e-5]))])
+            r, J = resid(p)
             good = np.isfinite(r) & np.isfinite(J).all(1)
             if good.sum() < 10:
                 break
             if it >= 4:  # outliers (contamination, a notch) only once the axis is close
                 mad = 1.4826 * np.median(np.abs(r[good])) + 1e-9
                 good &= np.abs(r) <= max(4 * mad, 0.5)
-            step, *_ = np.linalg.lstsq(J[good], -r[good], rcond=None)
+            Jg = J[good]
+            try:
+                step = np.linalg.solve(Jg.T @ Jg, -(Jg.T @ r[good]))
+            except np.linalg.LinAlgError:
+                break
             p += step
             if it >= 4 and abs(step[1]) < 1e-5 and abs(step[0]) < 1e-2:
                 break
