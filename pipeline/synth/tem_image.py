@@ -17,6 +17,11 @@ optional contamination blob far above the apex, a weak illumination gradient.
 
 Edge SNR: (background - intensity on the tip axis 3 nm above the apex, noise
 free) / noise standard deviation at the background level.
+
+``expected_tem_image`` is the noise-free image (before noise, scale bar and
+quantisation) with the geometry, illumination and material as explicit inputs
+and an optional outer-profile override; ``pipeline.synth.tem_fisher`` builds the
+Cramér-Rao bound of n on it.
 """
 from __future__ import annotations
 
@@ -28,7 +33,8 @@ from scipy import ndimage
 
 from pipeline.tem.projection import chord, eroded_radius
 
-__all__ = ["power_law_radius", "outer_radius", "render_tem_image", "write_tem_tiff"]
+__all__ = ["power_law_radius", "outer_radius", "radius_tables", "expected_tem_image", "axis_contrast",
+           "background_dose", "render_tem_image", "write_tem_tiff"]
 
 
 def power_law_radius(z, n, Q):
@@ -48,46 +54,62 @@ def outer_radius(z, n, Q, cone_above=25e-9):
     return np.where(z < 0, -1.0, r)
 
 
-def _radius_tables(n, Q, zmax, dz, coating):
-    zt = np.arange(-max(coating, dz) - 2 * dz, zmax + 2 * dz, dz)
-    ro = outer_radius(zt, n, Q)
-    rc = eroded_radius(zt, ro, coating) if coating > 0 else ro
+def radius_tables(n, Q, pixel_size, shape, coating_thickness=0.0, outer=None, cone_above=25e-9):
+    """Cross-section tables ``(zt, r_outer, r_core)`` (m) used by the renderer.
+
+    Uniform grid zt (step pixel_size/20) from below the apex to 1.5 (H + W) pixel
+    sizes above it; r_outer = ``outer(zt)`` if given (a callable z -> r, m; use a
+    negative radius where there is no material) else ``outer_radius``; r_core its
+    erosion by ``coating_thickness`` (= r_outer without coating).
+    """
+    H, W = shape
+    zmax = (H + W) * pixel_size * 1.5
+    dz = pixel_size / 20.0
+    zt = np.arange(-max(coating_thickness, dz) - 2 * dz, zmax + 2 * dz, dz)
+    ro = outer_radius(zt, n, Q, cone_above) if outer is None else np.asarray(outer(zt), float)
+    rc = eroded_radius(zt, ro, coating_thickness) if coating_thickness > 0 else ro
     return zt, ro, rc
 
 
-def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge_snr=20.0,
-                     rotation_deg=3.0, coating_thickness=0.0, orientation="down", seed=0, *,
-                     apex_frac=(0.68, 0.5), lambda_core=40e-9, lambda_coat=120e-9,
-                     noise="poisson", background_counts=None, dtype=np.uint16, supersample=5,
-                     scale_bar=True, contamination=False, contamination_height=35e-9,
-                     gradient=0.04, S=1.0, cone_above=25e-9):
-    """Render a side-view TEM image of a tip whose outer profile is z = r^n/(nQ) (Eq. 1).
+def silhouette_band(m_out, m_core, width=3):
+    """Pixels within ``width`` px of the outer or core silhouette (supersampled there)."""
+    st = np.ones((3, 3), bool)
+    band = np.zeros(m_out.shape, bool)
+    for m in (m_out, m_core):
+        band |= ndimage.binary_dilation(m, st, width) & ~ndimage.binary_erosion(m, st, width)
+    return band
 
-    n: power index; Q: m^(n-1); pixel_size: m; blur_sigma_px: Gaussian sigma (px);
-    edge_snr: see module doc (``None`` or ``inf`` = noise free); rotation_deg: tip
-    axis rotated counter-clockwise as displayed; coating_thickness: m along the
-    normal; orientation: "down" (apex at the bottom of the tip) or "up".
-    Returns ``(image, truth)``; truth holds n, Q, R (from Eq. 2 with S), S,
-    pixel_size, rotation_deg, apex_px (row, col; pixel centres at integers),
-    orientation, coating_thickness, blur_sigma_px, edge_snr, noise_sigma.
+
+def expected_tem_image(n, Q, pixel_size, shape, apex_px, *, rotation_deg=0.0, blur_sigma_px=1.0,
+                       coating_thickness=0.0, orientation="down", lambda_core=40e-9, lambda_coat=120e-9,
+                       background=1.0, gradient=0.04, gradient_perp=0.0, supersample=5, contamination=False,
+                       contamination_height=35e-9, cone_above=25e-9, outer=None, tables=None, band=None,
+                       band_width=3, return_band=False):
+    """Noise-free expected image relative to the background (before noise, scale bar, quantisation).
+
+    Expected counts are this times the background dose N_bg.  apex_px: (row, col)
+    of the apex, floats, pixel centres at integers; rotation_deg: tip axis rotated
+    counter-clockwise as displayed; blur_sigma_px: Gaussian sigma (px);
+    lambda_core/lambda_coat: attenuation lengths (m); illumination (before the
+    blur) = background * (1 + gradient (0.8 u + 0.6 v) + gradient_perp (0.6 u - 0.8 v))
+    with u = col/W - 0.5, v = row/H - 0.5 (two free linear-gradient amplitudes).
+    The outer profile is ``outer_radius(z, n, Q, cone_above)`` unless ``outer``
+    (callable z -> r, m) or ``tables`` ((zt, r_outer, r_core) as from
+    ``radius_tables``) overrides it; n and Q then only place the contamination blob.
+    band: boolean (H, W) mask of the supersampled pixels (default: within
+    ``band_width`` px of a silhouette at pixel centres).  Returns the image (and
+    the band if ``return_band``).
     """
-    rng = np.random.default_rng(seed)
     H, W = shape
     px = float(pixel_size)
     th = math.radians(rotation_deg)
-    # apex position with a random sub-pixel offset so tests do not sit on pixel centres
-    r_a = apex_frac[0] * H + rng.uniform(-0.5, 0.5)
-    c_a = apex_frac[1] * W + rng.uniform(-0.5, 0.5)
-    if orientation == "up":
-        r_a = H - 1 - r_a
-    elif orientation != "down":
+    r_a, c_a = float(apex_px[0]), float(apex_px[1])
+    if orientation not in ("down", "up"):
         raise ValueError(f"orientation must be 'down' or 'up', got {orientation!r}")
     sgn = 1.0 if orientation == "down" else -1.0
-
-    zmax = (H + W) * px * 1.5
-    dz = px / 20.0
-    zt, ro_t, rc_t = _radius_tables(n, Q, zmax, dz, coating_thickness)
-
+    if tables is None:
+        tables = radius_tables(n, Q, px, shape, coating_thickness, outer, cone_above)
+    zt, ro_t, rc_t = tables
     cos_t, sin_t = math.cos(th), math.sin(th)
 
     def attenuation(rr, cc):
@@ -112,10 +134,8 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
     rows, cols = np.mgrid[0:H, 0:W].astype(float)
     att, (m_out, m_core) = attenuation(rows, cols)
     clean = np.exp(-att)
-    st = np.ones((3, 3), bool)
-    band = np.zeros((H, W), bool)
-    for m in (m_out, m_core):
-        band |= ndimage.binary_dilation(m, st, 3) & ~ndimage.binary_erosion(m, st, 3)
+    if band is None:
+        band = silhouette_band(m_out, m_core, band_width)
     ss = int(supersample)
     sub = (np.arange(ss) + 0.5) / ss - 0.5
     rb, cb = np.nonzero(band)
@@ -124,18 +144,65 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
     att_b, _ = attenuation(rr, cc)
     clean[rb, cb] = np.exp(-att_b).mean(axis=(1, 2))
     # weak illumination gradient, then blur (optics) on the transmitted intensity
-    illum = 1.0 + gradient * ((cols / W - 0.5) * 0.8 + (rows / H - 0.5) * 0.6)
-    img = clean * illum
+    u, v = cols / W - 0.5, rows / H - 0.5
+    illum = 1.0 + (gradient * (u * 0.8 + v * 0.6) + gradient_perp * (u * 0.6 - v * 0.8))
+    img = clean * (illum * background)
     if blur_sigma_px and blur_sigma_px > 0:
         img = ndimage.gaussian_filter(img, blur_sigma_px, mode="nearest")
+    return (img, band) if return_band else img
 
-    # reference contrast on the axis 3 nm above the apex (noise free, no blur)
-    z3 = 3e-9
-    ro3 = float(np.interp(z3, zt, ro_t))
-    rc3 = float(np.interp(z3, zt, rc_t))
+
+def axis_contrast(tables, lambda_core, lambda_coat, z=3e-9):
+    """1 - T on the tip axis at height z (m) above the apex (noise free, no blur)."""
+    zt, ro_t, rc_t = tables
+    ro3 = float(np.interp(z, zt, ro_t))
+    rc3 = float(np.interp(z, zt, rc_t))
     t_core3 = 2 * max(rc3, 0.0)
     att3 = (2 * ro3 - t_core3) / lambda_coat + t_core3 / lambda_core
-    contrast = 1.0 - math.exp(-att3)
+    return 1.0 - math.exp(-att3)
+
+
+def background_dose(edge_snr, contrast):
+    """Background counts per pixel N_bg = (edge_snr / contrast)^2 of the Poisson model."""
+    return (edge_snr / contrast) ** 2
+
+
+def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge_snr=20.0,
+                     rotation_deg=3.0, coating_thickness=0.0, orientation="down", seed=0, *,
+                     apex_frac=(0.68, 0.5), lambda_core=40e-9, lambda_coat=120e-9,
+                     noise="poisson", background_counts=None, dtype=np.uint16, supersample=5,
+                     scale_bar=True, contamination=False, contamination_height=35e-9,
+                     gradient=0.04, S=1.0, cone_above=25e-9):
+    """Render a side-view TEM image of a tip whose outer profile is z = r^n/(nQ) (Eq. 1).
+
+    n: power index; Q: m^(n-1); pixel_size: m; blur_sigma_px: Gaussian sigma (px);
+    edge_snr: see module doc (``None`` or ``inf`` = noise free); rotation_deg: tip
+    axis rotated counter-clockwise as displayed; coating_thickness: m along the
+    normal; orientation: "down" (apex at the bottom of the tip) or "up".
+    Returns ``(image, truth)``; truth holds n, Q, R (from Eq. 2 with S), S,
+    pixel_size, rotation_deg, apex_px (row, col; pixel centres at integers),
+    orientation, coating_thickness, blur_sigma_px, edge_snr, noise_sigma.
+    The noise-free image is ``expected_tem_image`` (times ``truth["background"]``).
+    """
+    rng = np.random.default_rng(seed)
+    H, W = shape
+    px = float(pixel_size)
+    # apex position with a random sub-pixel offset so tests do not sit on pixel centres
+    r_a = apex_frac[0] * H + rng.uniform(-0.5, 0.5)
+    c_a = apex_frac[1] * W + rng.uniform(-0.5, 0.5)
+    if orientation == "up":
+        r_a = H - 1 - r_a
+    elif orientation != "down":
+        raise ValueError(f"orientation must be 'down' or 'up', got {orientation!r}")
+
+    tables = radius_tables(n, Q, px, shape, coating_thickness, cone_above=cone_above)
+    img = expected_tem_image(n, Q, px, shape, (r_a, c_a), rotation_deg=rotation_deg, blur_sigma_px=blur_sigma_px,
+                             coating_thickness=coating_thickness, orientation=orientation,
+                             lambda_core=lambda_core, lambda_coat=lambda_coat, gradient=gradient,
+                             supersample=supersample, contamination=contamination,
+                             contamination_height=contamination_height, tables=tables)
+    # reference contrast on the axis 3 nm above the apex (noise free, no blur)
+    contrast = axis_contrast(tables, lambda_core, lambda_coat)
 
     maxval = np.iinfo(dtype).max if np.issubdtype(dtype, np.integer) else 1.0
     bg = background_counts if background_counts is not None else 0.8 * maxval / (1 + gradient)
@@ -144,7 +211,7 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
         sigma_noise = 0.0
     elif noise == "poisson":
         # Poisson counts: sigma_bg = sqrt(N_bg) with N_bg = (snr / contrast)^2
-        nbg = (edge_snr / contrast) ** 2
+        nbg = background_dose(edge_snr, contrast)
         counts = rng.poisson(img * nbg).astype(float)
         noisy = counts * (bg / nbg)
         sigma_noise = bg / math.sqrt(nbg)
