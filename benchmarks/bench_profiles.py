@@ -73,6 +73,15 @@ def bench_tip_b():
               f"{100 * fe:8.2f} {prof.edge_model['coating_thickness'] * 1e9:7.2f} {dt:5.2f}", flush=True)
 
 
+def _layer(e):
+    """The coating decision of the edge model: 'single', 'coated 1.49' (nm) or 'ambiguous'."""
+    em = e["profile"].edge_model
+    ct = em.get("coating_test") or {}
+    if ct.get("model") == "coated":
+        return f"coated {em['coating_thickness'] * 1e9:.2f}"
+    return "ambiguous" if ct.get("ambiguous") else "single"
+
+
 def _use_refine(refine):
     """Make every extract_profile call of this run use ``refine`` (evaluate_case imports it
     from the module at call time)."""
@@ -101,7 +110,7 @@ def main(argv=None):
     conds = CONDITIONS[1:3] if a.quick else CONDITIONS
     ns = [2.0, 4.0] if a.quick else NS
     print(f"{'px nm':>6} {'blur':>5} {'SNR':>5} {'coat nm':>7} {'n':>4} {'rot':>5} | {'rmsN nm':>8} {'rms_r nm':>8} "
-          f"{'|dn|':>6} {'sig_n':>6} {'|dF|max%':>8} {'t s':>6}  flags")
+          f"{'|dn|':>6} {'sig_n':>6} {'|dF|max%':>8} {'t s':>6} | {'layer':>11} {'dn/sn':>5} {'rms/sd':>6}  flags")
     rows = []
     for (px, blur, snr, rot), coat, n in itertools.product(conds, COATINGS, ns):
         seed = len(rows)
@@ -113,9 +122,18 @@ def main(argv=None):
         rows.append(e)
         print(f"{px * 1e9:6.2f} {blur:5.1f} {snr:5.0f} {coat * 1e9:7.1f} {n:4.0f} {rot:5.0f} | "
               f"{e['rms_normal'] * 1e9:8.3f} {e['rms_r'] * 1e9:8.3f} {abs(e['dn']):6.3f} {e['sigma_n']:6.3f} "
-              f"{100 * e['force_err_max']:8.2f} {e['t_profile']:6.2f}  {','.join(e['flags'])}", flush=True)
+              f"{100 * e['force_err_max']:8.2f} {e['t_profile']:6.2f} | {_layer(e):>11} "
+              f"{abs(e['dn']) / e['sigma_n']:5.1f} {e['rms_normal'] / e['reported']['edge_sd']:6.1f}  "
+              f"{','.join(e['flags'])}", flush=True)
     if rows:
         arr = lambda k: np.array([r[k] for r in rows])  # noqa: E731
+        layer = np.array([_layer(r) for r in rows])
+        coat_true = np.array([r["truth"].get("coating_thickness", 0.0) for r in rows])
+        thin = (coat_true > 0) & (coat_true < 5e-9)
+        print(f"\nlight layer: thin oxide images {thin.sum()}: found {np.sum(thin & (np.char.find(layer.astype(str), 'coated') >= 0))}, "
+              f"flagged ambiguous {np.sum(thin & (layer == 'ambiguous'))}; images without a thin layer {(~thin).sum()}: "
+              f"layer found {np.sum(~thin & (np.char.find(layer.astype(str), 'coated') >= 0))}, "
+              f"flagged {np.sum(~thin & (layer == 'ambiguous'))}")
         print(f"\nsummary over {len(rows)} images: median rmsN {np.median(arr('rms_normal')) * 1e9:.3f} nm, "
               f"max {arr('rms_normal').max() * 1e9:.3f} nm; |dn| <= 0.1 in {np.mean(np.abs(arr('dn')) <= 0.1):.0%}; "
               f"|dF| <= 3 % in {np.mean(arr('force_err_max') <= 0.03):.0%}; median time {np.median(arr('t_profile')):.2f} s")

@@ -101,7 +101,23 @@ def _error_message(err: jsonschema.ValidationError, root: dict) -> str:
         return f"{where}: give either E_star, or both tip and sample (each with E and nu), not both"
     if err.validator == "enum":
         return f"{where}: {err.instance!r} is not one of {err.validator_value}"
+    if err.validator == "anyOf":
+        alts = [_describe(_resolve(b, root)) for b in err.validator_value]
+        return f"{where}: {err.instance!r} is not valid; expected {' or '.join(alts)}"
     return f"{where}: {err.message}"
+
+
+def _describe(schema: dict) -> str:
+    """What a schema branch accepts, in words (for anyOf errors)."""
+    if "enum" in schema:
+        return " / ".join(repr(v) for v in schema["enum"])
+    if "x-unit" in schema:
+        kind = schema["x-unit"].replace("_", " ")
+        return f"a {kind} with its unit (e.g. '1.5 {example_unit(schema['x-unit'])}')"
+    if schema.get("type") == "integer":
+        lo, hi = schema.get("minimum"), schema.get("maximum")
+        return f"an integer{f' {lo}..{hi}' if lo is not None and hi is not None else ''}"
+    return schema.get("type", "a value")
 
 
 def validate(instance: dict, schema: dict, source) -> None:

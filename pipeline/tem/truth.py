@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.synth.tem_image import outer_radius
 
-__all__ = ["profile_errors", "force_errors"]
+__all__ = ["profile_errors", "force_errors", "reported_uncertainty", "evaluate_case"]
 
 
 def _true_tip_coords(edge_px, truth):
@@ -66,12 +66,40 @@ def force_errors(n_fit, Q_fit, truth, heights=np.linspace(1e-9, 6e-9, 11)):
     return f_fit / f_true - 1.0
 
 
+def reported_uncertainty(profile, fit, heights=np.linspace(1e-9, 6e-9, 11), fit_height=6e-9):
+    """What the pipeline reports as its own uncertainty (SI), to judge an error against.
+
+    Returns dict: sigma_n; sigma_force (largest relative SD over ``heights`` of the rigid
+    Dugdale pull-off area, Eq. 12, from cov(n, ln Q)); edge_sd (RMS over the points of the
+    fit window of the predicted SD of each point's normal offset, from the edge covariance;
+    NaN without one).
+    """
+    from pipeline.fits import rigid_dugdale_area
+
+    n, lnQ = fit.n, fit.ln_Q
+    e = 1e-6
+    h = np.asarray(heights, float)
+    g = np.stack([(np.log(rigid_dugdale_area(n + e, fit.Q, h)) - np.log(rigid_dugdale_area(n - e, fit.Q, h))) / (2 * e),
+                  (np.log(rigid_dugdale_area(n, np.exp(lnQ + e), h))
+                   - np.log(rigid_dugdale_area(n, np.exp(lnQ - e), h))) / (2 * e)], axis=1)
+    sd_f = np.sqrt(np.einsum("hi,ij,hj->h", g, np.asarray(fit.cov_n_lnQ), g))
+    edge_sd = float("nan")
+    if profile.offset_basis is not None and profile.offset_cov is not None:
+        m = profile.z <= fit_height
+        B = profile.offset_basis[m]
+        edge_sd = float(np.sqrt(np.mean(np.einsum("ij,jk,ik->i", B, profile.offset_cov, B))))
+    return dict(sigma_n=float(fit.sigma_n), sigma_force=float(np.max(sd_f)), edge_sd=edge_sd)
+
+
 TIP_SHAPES = {2: 10e-9, 3: 15e-9, 4: 20e-9, 5: 22e-9, 6: 25e-9}  # n -> R (m), S = 1
 
 
 def evaluate_case(n, pixel_size, blur_sigma_px=1.0, edge_snr=20.0, rotation_deg=3.0, coating_thickness=0.0,
-                  orientation="down", seed=0, R=None, fit_height=6e-9, profile_height=20e-9, shape=None, **kw):
-    """Render a synthetic image with known truth, extract + fit; return the error metrics (SI)."""
+                  orientation="down", seed=0, R=None, fit_height=6e-9, profile_height=20e-9, shape=None,
+                  coating="auto", **kw):
+    """Render a synthetic image with known truth, extract + fit; return the error metrics (SI)
+    and the pipeline's own reported uncertainty (``reported``, see ``reported_uncertainty``).
+    ``coating``: what the extraction is told ("auto", "none" or a thickness in m)."""
     import time
 
     from pipeline.fits import fit_tip_profile
@@ -89,11 +117,14 @@ def evaluate_case(n, pixel_size, blur_sigma_px=1.0, edge_snr=20.0, rotation_deg=
                                   orientation=orientation, seed=seed, **kw)
     t0 = time.perf_counter()
     prof = extract_profile(TemImage(img.astype(np.float64), pixel_size, "synthetic"),
-                           profile_height=profile_height)
+                           profile_height=profile_height, coating=coating)
     t_prof = time.perf_counter() - t0
     fit = fit_tip_profile(prof, fit_height)
     pe = profile_errors(prof, truth, fit_height)
     fe = force_errors(fit.n, fit.Q, truth)
     return dict(truth=truth, profile=prof, fit=fit, t_profile=t_prof, rms_normal=pe["rms_normal"],
                 rms_r=pe["rms_r"], bias=pe["bias_normal"], apex_dz=pe["apex_dz"], axis_deg_err=pe["axis_deg_err"],
-                dn=fit.n - n, force_err_max=float(np.max(np.abs(fe))), sigma_n=fit.sigma_n, flags=fit.flags)
+                dn=fit.n - n, force_err_max=float(np.max(np.abs(fe))), sigma_n=fit.sigma_n, flags=fit.flags,
+                edge_flags=list(prof.edge_model.get("global_flags", [])),
+                coating_ambiguous=bool((prof.edge_model.get("coating_test") or {}).get("ambiguous", False)),
+                reported=reported_uncertainty(prof, fit, fit_height=fit_height))
