@@ -42,7 +42,7 @@ def cmd_profiles(a):
         iv["image_path"], a.out_h5, a.out_png,
         pixel_size=tip["tem"].get("pixel_size"), orientation=tip["tem"]["orientation"],
         profile_height=tip["tem"]["profile_height"], coating=tip["tem"]["coating"], refine=tip["tem"]["refine"],
-        binning=tip["tem"]["binning"], tip=tip["name"], interval=iv["name"],
+        tip=tip["name"], interval=iv["name"],
     )
 
 

@@ -55,7 +55,7 @@ def test_valid_tip_is_converted_to_si(tmp_path):
     assert tip["cantilever"]["deflection_sensitivity"] == pytest.approx(50e-9)
     assert tip["tem"]["pixel_size"] == pytest.approx(2.5e-10)  # Angstrom written "A"
     assert tip["tem"]["fit_height"] == pytest.approx(6e-9)  # schema default
-    assert tip["tem"]["coating"] == "auto" and tip["tem"]["binning"] == "auto"
+    assert tip["tem"]["coating"] == "auto"
     # Eq. 7 with E = 150 GPa, nu = 0.3 on both sides: E* = E / (2 (1 - nu^2)) = 82.42 GPa
     assert tip["materials"]["E_star"] == pytest.approx(150e9 / (2 * 0.91), rel=1e-12)
     assert [iv["reference"] for iv in tip["intervals"]] == [True, False]
@@ -81,7 +81,6 @@ def test_reduced_modulus_rigid_flat_limit():
         ({"data_dir": KeyError}, "'data_dir' is a required property"),
         ({"materials": {"E_star": "80 GPa", "tip": {"E": "1 GPa", "nu": 0.3}}}, "give either E_star, or both tip and sample"),
         ({"tem.orientation": "sideways"}, "tem.orientation: 'sideways' is not one of"),
-        ({"tem.binning": 0}, "tem.binning: 0 is not valid; expected 'auto' or an integer 1..8"),
         ({"tem.coating": 15}, "tem.coating: 15 is not valid; expected 'auto' / 'none' or a length with its unit"),
     ],
 )

@@ -51,7 +51,7 @@ def tip_yaml(wildcards):
 # then reruns exactly the stages whose settings changed (editing `cantilever:` reruns
 # forces -> inversion -> range, not profiles or fits), and other tips not at all.
 STAGE_KEYS = {
-    "profiles": ("tem", ("pixel_size", "orientation", "profile_height", "coating", "refine", "binning")),
+    "profiles": ("tem", ("pixel_size", "orientation", "profile_height", "coating", "refine")),
     "fits": ("tem", ("fit_height", "S")),
     "forces": (None, ("cantilever", "force_curves")),
     "inversion": (None, ("materials", "reference_intervals")),

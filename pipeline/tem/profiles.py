@@ -84,17 +84,15 @@ def _fail(path, exc):
 
 
 def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto",
-                    refine="global", binning="auto") -> TipProfile:
+                    refine="global") -> TipProfile:
     """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
 
     ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
-    "global" (then one global fit of all edge pixels, ``silhouette_fit.fit_silhouette``);
-    ``binning``: "auto" (``silhouette_fit.bin_factor``) or the block size of the global fit.
+    "global" (then one global fit of all edge pixels, ``silhouette_fit.fit_silhouette``, on
+    b x b blocks of pixels finer than 0.2 nm, ``silhouette_fit.bin_factor``).
     """
     if refine not in ("normals", "global"):
         raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
-    if binning not in (None, "auto") and not (isinstance(binning, int) and binning >= 1):
-        raise ValueError(f"binning must be 'auto' or a block size >= 1, got {binning!r}")
     path = image.path or "<image>"
     px = image.pixel_size
     coat_hint = _coating_hint(coating, px, path)
@@ -143,8 +141,7 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
 
         sym = _symmetry_frame(cont, frame, hpx)
         try:
-            gf = fit_silhouette(flat, cont, sym, hpx, noise, pixel_size=px, coat_hint=coat_hint,
-                                binning=None if binning in (None, "auto") else int(binning))
+            gf = fit_silhouette(flat, cont, sym, hpx, noise, pixel_size=px, coat_hint=coat_hint)
         except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # fall back to per-normal fits
             extra = dict(refine="normals", global_flags=[f"global fit failed: {exc}"])
     if gf is not None:

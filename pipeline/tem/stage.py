@@ -12,20 +12,19 @@ __all__ = ["run_profiles", "write_profile_h5"]
 
 
 def run_profiles(image_path, out_h5, out_png, *, pixel_size=None, orientation="auto", tip="", interval="",
-                 profile_height=20e-9, coating="auto", refine="global", binning="auto") -> None:
+                 profile_height=20e-9, coating="auto", refine="global") -> None:
     """Read ``image_path``, extract the apex profile, write ``out_h5`` and ``out_png`` atomically.
 
     pixel_size: m (used only if the file has no calibration); orientation: auto|down|up;
     profile_height: m of profile kept above the apex; coating: "auto", "none" or a
     thickness in m (lighter outer layer; the OUTER surface is reported); refine:
     "global" (one fit of all edge pixels, pipeline.tem.silhouette_fit) or "normals"
-    (per-normal fits only, pipeline.tem.edges); binning: "auto" or the block size of the
-    global fit (``silhouette_fit.bin_factor``).
+    (per-normal fits only, pipeline.tem.edges).
     Raises ValueError subclasses (pipeline.tem.errors) naming the file.
     """
     image = read_tem_image(image_path, pixel_size)
     profile = extract_profile(image, orientation=orientation, profile_height=profile_height, coating=coating,
-                              refine=refine, binning=binning)
+                              refine=refine)
     write_profile_h5(out_h5, image, profile, tip=tip, interval=interval)
     plot_profile(image, profile, out_png, title=f"{tip} {interval}".strip())
 
@@ -88,6 +87,8 @@ def write_profile_h5(out_h5, image, profile, tip="", interval=""):
             g.attrs["coating_ambiguous"] = bool(ct.get("ambiguous", False))
             if "skipped" in ct:
                 g.attrs["coating_test_skipped"] = ct["skipped"]
+            if "note" in ct:
+                g.attrs["coating_note"] = ct["note"]
             px = image.pixel_size
             if "dchi2" in ct:
                 w(g, "coating_dchi2", ct["dchi2"], "1",
