@@ -225,12 +225,16 @@ def test_undecidable_layer_is_flagged_and_covered_by_the_reported_uncertainty():
 
 @pytest.mark.slow
 def test_coated_fit_at_fine_pixels_is_precise_and_its_sigma_honest():
-    """A 1.5 nm oxide at 0.1 nm pixels (fitted on 2 x 2 blocks), SNR 20, n 2: over 8 seeds the
-    SD of n is within 2x the Cramer-Rao bound (0.0053; the LM solution alone, short of the
-    optimum, scattered 3x more) and the reported sigma_n within a factor 1.6 of it."""
+    """A 1.5 nm oxide at 0.1 nm pixels (fitted on 2 x 2 blocks), SNR 20, n 2: over 16 images
+    (both orientations, four rotations) the SD of n is within 2x the Cramer-Rao bound (0.0053;
+    measured 0.0071; the LM solution alone, short of the optimum, scattered 0.0154) and the
+    reported sigma_n within a factor 1.6 of it (measured 0.0093). 16 images, not 8: the SD of
+    8 draws scatters by +/-25 %, too much for a 2x bound on a 1.3x fit."""
     from pipeline.tem.truth import evaluate_case
 
-    es = [evaluate_case(2.0, 0.1e-9, 0.5, 20.0, 3.0, 1.5e-9, seed=400 + s) for s in range(8)]
+    rotations = [4.7, -3.1, 9.0, -11.0]
+    es = [evaluate_case(2.0, 0.1e-9, 0.5, 20.0, rotations[s % 4], 1.5e-9, seed=400 + s,
+                        orientation="up" if s % 2 else "down") for s in range(16)]
     sd = np.std([e["dn"] for e in es], ddof=1)
     sn = np.median([e["sigma_n"] for e in es])
     assert sd < 2.0 * 0.0053, sd

@@ -90,6 +90,7 @@ BLUR_PER_COAT = 0.28
 COAT_PER_BLUR = 2.6
 COAT_START_ITERS = 3  # full LM iterations from each of the two best starts
 COAT_EXTRA_STARTS = 3  # further starts tried when the decision is borderline
+POLISH_MIN_DCHI2 = 1.0  # an exact Gauss-Newton step is taken if chi^2 falls by more than this x K
 # weight of the soft monotone-flank penalty (1/px).  Flat faces: a bump is seen through
 # the vacuum, a dimple (a hole in the section) only through the dark body, so a hard
 # constraint (100) pushes a noisy face outwards and none (0) lets it sink inwards; 20
@@ -616,28 +617,30 @@ class _Fitter:
         (chi^2 falls by 2-12 with K = 43-89 shape parameters) and the LM solution, held back by
         its columns like a regularised fit, scatters less (n 2 at 0.5 nm px, SNR 10: SD 0.14
         against 0.18 stepped; bound 0.15).  So a step (each component within the LM step limits,
-        or half of it) is taken only if it lowers chi^2 by more than K; a second one follows the
-        first (a first step can overshoot where the model is far from linear).
-        Returns (state, J^T J, names); J^T J is that of the last Jacobian computed."""
+        or half of it) is taken only if it lowers chi^2 by more than K; a second one, with the same
+        Jacobian, follows the first (a first step can overshoot where the model is far from linear).
+        Returns (state, J^T J, names) with J^T J at the LM solution (the covariance)."""
         K = self.K
-        for _ in range(steps):
-            st, Jc, Jo, names = self.exact_jacobian(st)
-            pr, pj = self.penalty(st.v[:K])
-            J = np.hstack([Jc, Jo])
-            JTJ = J.T @ J
-            JTJ[:K, :K] += pj.T @ pj
+        st, Jc, Jo, names = self.exact_jacobian(st)
+        J = np.hstack([Jc, Jo])
+        JTJ = J.T @ J
+        _, pj = self.penalty(st.v[:K])
+        JTJ[:K, :K] += pj.T @ pj
+        try:
+            A = np.linalg.inv(JTJ + 1e-9 * np.diag(np.diag(JTJ) + 1e-12))
+        except np.linalg.LinAlgError:
+            return st, JTJ, names
+        for _ in range(steps):  # the later steps reuse the Jacobian (it barely changes over a step)
+            pr, _ = self.penalty(st.v[:K])
             g = J.T @ st.res
             g[:K] += pj.T @ pr
-            try:  # the step of (shape, globals); the linear illumination terms come along
-                step = -np.linalg.solve(JTJ + 1e-9 * np.diag(np.diag(JTJ) + 1e-12), g)[: st.v.size]
-            except np.linalg.LinAlgError:
-                break
-            # each component within the LM step limits: a weakly determined knot at the curve's
-            # end must not run off, the well-determined rest of the step is kept
-            step = np.clip(step, -max_step, max_step)
+            # the step of (shape, globals); the linear illumination terms come along.  Each
+            # component within the LM step limits: a weakly determined knot at the curve's end
+            # must not run off, the well-determined rest of the step is kept
+            step = np.clip(-(A @ g)[: st.v.size], -max_step, max_step)
             for frac in (1.0, 0.5):
                 sn = self.evaluate(np.clip(st.v + frac * step, lb, ub))
-                if st.cost - sn.cost > K:
+                if st.cost - sn.cost > POLISH_MIN_DCHI2 * K:
                     break
             else:
                 break
@@ -833,6 +836,8 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
         st, _, _, it = f2.run(starts[j], "full", COAT_START_ITERS, *lim2)
         n_it += it
         runs.append(st)
+        if cost1 - st.cost > 3 * COAT_DCHI2 and physical(st):
+            break  # a clear layer from the best-ranked start: the second is not needed
     st, it = _converge(f2, min(runs, key=lambda r: r.cost), cost1, lim2, max_iter)
     n_it += it
     runs.append(st)
