@@ -13,7 +13,9 @@ h = 1..6 nm of the CRB of the relative rigid Dugdale pull-off (Eq. 12) error, an
 the time of the Fisher computation.  The Fisher matrix scales exactly with
 SNR^2 (Poisson, fixed geometry), so it is computed once per case at SNR 5 and
 the SNR 10 row reuses it (same time shown).  --convergence: CRB_n of three cases
-for several finite-difference steps and supersample 5 vs 9.
+for several finite-difference steps and supersample 5 vs 9.  --efficiency SEEDS: the
+fit's scatter against the stored bounds (tests/data/crb_grid.csv) at SNR 10, blur 0.5 px,
+n 2 and 6, uncoated and 1.5 nm oxide, over SEEDS images (rotations and orientations varied).
 """
 from __future__ import annotations
 
@@ -62,6 +64,31 @@ def fit_efficiency(n, px, blur, snr, coat, crb, seeds):
     return f" | {sn / crb:11.2f} {rms / crb:12.2f}"
 
 
+def efficiency_table(seeds, csv="tests/data/crb_grid.csv"):
+    """RMS, SD and mean of n_fit - n and the median reported sigma_n, in units of the stored
+    CRB, over ``seeds`` images per case (SNR 10, blur 0.5 px; n 2, 6; no coating / 1.5 nm oxide);
+    RMS/sigma_n > 1 is a reported uncertainty smaller than the real scatter."""
+    import pandas as pd
+
+    from pipeline.tem.truth import evaluate_case
+
+    t = pd.read_csv(csv)
+    print(f"fit efficiency over {seeds} images per case (SNR 10, blur 0.5 px; 1 = at the bound)")
+    print(f"{'px nm':>5} {'coat':>4} {'n':>2} | {'CRB_n':>6} {'RMS/CRB':>7} {'SD/CRB':>6} {'sigma_n/CRB':>11} "
+          f"{'mean dn':>7} {'RMS/sigma_n':>11}")
+    for n, px, coat in itertools.product([2.0, 6.0], PXS, [0.0, 1.5e-9]):
+        row = t[(t.n == n) & np.isclose(t.pixel_size_nm, px * 1e9) & (t.blur_px == 0.5)
+                & np.isclose(t.coating_nm, coat * 1e9) & (t.edge_snr == 10.0)].iloc[0]
+        out = [evaluate_case(n, px, 0.5, 10.0, [4.7, -3.1, 9.0, -11.0][k % 4], coat, seed=700 + k,
+                             orientation="up" if k % 2 else "down") for k in range(seeds)]
+        dn = np.array([o["dn"] for o in out])
+        sn = np.median([o["sigma_n"] for o in out])
+        crb = row.crb_n
+        print(f"{px * 1e9:5.2f} {coat * 1e9:4.1f} {n:2.0f} | {crb:6.4f} {np.sqrt(np.mean(dn ** 2)) / crb:7.2f} "
+              f"{dn.std(ddof=1) / crb:6.2f} {sn / crb:11.2f} {dn.mean():+7.3f} {np.sqrt(np.mean(dn ** 2)) / sn:11.2f}",
+              flush=True)
+
+
 def convergence(n=2.0, px=0.5e-9, blur=0.5, coat=0.0):
     print(f"convergence, n {n:g}, px {px * 1e9:g} nm, blur {blur:g} px, coating {coat * 1e9:g} nm, SNR 5")
     print(f"{'step px':>7} {'ss':>3} | {'CRB_n':>7} {'CRB_opt':>7} {'dF%':>6} {'t s':>5}")
@@ -87,7 +114,11 @@ def main(argv=None):
     ap.add_argument("--convergence", action="store_true",
                     help="step / supersample convergence on three cases "
                          "(0.5 nm px / n 2, 0.1 nm px / n 6, 0.25 nm px / 15 nm coating)")
+    ap.add_argument("--efficiency", type=int, default=0, metavar="SEEDS",
+                    help="the fit's scatter against the stored bounds (no Fisher computation)")
     a = ap.parse_args(argv)
+    if a.efficiency:
+        return efficiency_table(a.efficiency)
     if a.convergence:
         for case in [(2.0, 0.5e-9, 0.5, 0.0), (6.0, 0.1e-9, 2.0, 1.5e-9), (2.0, 0.25e-9, 0.5, 15e-9)]:
             convergence(*case)

@@ -646,26 +646,6 @@ class _Fitter:
                 break
             st = sn
         return st, JTJ, names
-        # each component within the LM step limits: a weakly determined knot at the curve's
-        # end must not run off, the well-determined rest of the step is kept
-        step = np.clip(step, -max_step, max_step)
-        # a line search along it (the first step can overshoot where the model is far from
-        # linear: a noise-free coated apex moved 0.08 nm for chi^2 -441, where half a step
-        # lands near the optimum)
-        best = min((self.evaluate(np.clip(st.v + frac * step, lb, ub)) for frac in (1.0, 0.5, 0.25)),
-                   key=lambda sn: sn.cost)
-        if st.cost - best.cost > K:
-            return best, JTJ, names
-        return st, JTJ, names
-        step *= min(1.0, float(np.min(max_step / (np.abs(step) + 1e-300))))  # the LM step limits
-        # a line search along it (the first step can overshoot where the model is far from
-        # linear: a noise-free coated apex moved 0.08 nm for chi^2 -441, where half a step
-        # lands near the optimum)
-        best = min((self.evaluate(np.clip(st.v + frac * step, lb, ub)) for frac in (1.0, 0.5, 0.25)),
-                   key=lambda sn: sn.cost)
-        if st.cost - best.cost > K:
-            return best, JTJ, names
-        return st, JTJ, names
 
     def normal_equations(self, st, shape_mode):
         """J^T J and J^T r over (shape..., globals, linear) incl. the penalty."""
