@@ -21,7 +21,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np
 
-from pipeline.tem.truth import evaluate_case
+from pipeline.tem.truth import coating_decision, evaluate_case
 
 # (pixel size m, blur sigma px, edge SNR, rotation deg) combinations crossed with n and coating
 CONDITIONS = [(0.1e-9, 1.0, 20.0, 3.0), (0.25e-9, 0.5, np.inf, -8.0), (0.25e-9, 2.0, 5.0, 12.0),
@@ -75,11 +75,10 @@ def bench_tip_b():
 
 def _layer(e):
     """The coating decision of the edge model: 'single', 'coated 1.49' (nm) or 'ambiguous'."""
-    em = e["profile"].edge_model
-    ct = em.get("coating_test") or {}
-    if ct.get("model") == "coated":
-        return f"coated {em['coating_thickness'] * 1e9:.2f}"
-    return "ambiguous" if ct.get("ambiguous") else "single"
+    d = coating_decision(e["profile"])
+    if d == "found":
+        return f"coated {e['profile'].edge_model['coating_thickness'] * 1e9:.2f}"
+    return "ambiguous" if d == "flagged" else "single"
 
 
 def _use_refine(refine):
@@ -127,13 +126,12 @@ def main(argv=None):
               f"{','.join(e['flags'])}", flush=True)
     if rows:
         arr = lambda k: np.array([r[k] for r in rows])  # noqa: E731
-        layer = np.array([_layer(r) for r in rows])
+        layer = np.array([coating_decision(r["profile"]) for r in rows])
         coat_true = np.array([r["truth"].get("coating_thickness", 0.0) for r in rows])
         thin = (coat_true > 0) & (coat_true < 5e-9)
-        print(f"\nlight layer: thin oxide images {thin.sum()}: found {np.sum(thin & (np.char.find(layer.astype(str), 'coated') >= 0))}, "
-              f"flagged ambiguous {np.sum(thin & (layer == 'ambiguous'))}; images without a thin layer {(~thin).sum()}: "
-              f"layer found {np.sum(~thin & (np.char.find(layer.astype(str), 'coated') >= 0))}, "
-              f"flagged {np.sum(~thin & (layer == 'ambiguous'))}")
+        print(f"\nlight layer: thin oxide images {thin.sum()}: found {np.sum(thin & (layer == 'found'))}, "
+              f"flagged ambiguous {np.sum(thin & (layer == 'flagged'))}; images without a thin layer {(~thin).sum()}: "
+              f"layer found {np.sum(~thin & (layer == 'found'))}, flagged {np.sum(~thin & (layer == 'flagged'))}")
         print(f"\nsummary over {len(rows)} images: median rmsN {np.median(arr('rms_normal')) * 1e9:.3f} nm, "
               f"max {arr('rms_normal').max() * 1e9:.3f} nm; |dn| <= 0.1 in {np.mean(np.abs(arr('dn')) <= 0.1):.0%}; "
               f"|dF| <= 3 % in {np.mean(arr('force_err_max') <= 0.03):.0%}; median time {np.median(arr('t_profile')):.2f} s")

@@ -31,13 +31,14 @@ ROTATIONS = [-12.0, -4.0, 0.0, 7.0, 14.0]
 
 def run_case(case):
     """Fit one image; return a flat dict of its decision, errors and reported uncertainty (SI)."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.tem.truth import coating_decision, evaluate_case
 
     n, px, snr, coat, s = case
     e = evaluate_case(n, px, 2.0, snr, ROTATIONS[s % 5], coat, seed=500 + s, orientation="up" if s % 2 else "down")
     ct = e["profile"].edge_model.get("coating_test") or {}
     rep = e["reported"]
-    decision = "found" if ct.get("model") == "coated" else ("flagged" if ct.get("ambiguous") else "neither")
+    decision = coating_decision(e["profile"])
+    decision = "neither" if decision == "single" else decision  # neither found nor flagged
     covered = (abs(e["dn"]) <= max(0.1, 3.5 * rep["sigma_n"])
                and e["force_err_max"] <= max(0.03, 3.5 * rep["sigma_force"]))
     edge_covered = e["rms_normal"] <= 3.5 * rep["edge_sd"]

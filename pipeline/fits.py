@@ -28,7 +28,8 @@ from scipy import optimize
 
 from pipeline import h5io
 
-__all__ = ["PowerLawFit", "FitError", "fit_power_law", "fit_tip_profile", "run_fit", "plot_tip_fits", "rigid_dugdale_area"]
+__all__ = ["PowerLawFit", "FitError", "fit_power_law", "fit_tip_profile", "run_fit", "plot_tip_fits", "rigid_dugdale_area",
+           "rigid_dugdale_log_gradient"]
 
 N_BOUNDS = (1.05, 20.0)
 
@@ -65,6 +66,13 @@ class PowerLawFit:
 def rigid_dugdale_area(n, Q, h):
     """pi (n h Q)^(2/n): the area factor of the rigid Dugdale pull-off, Eq. 12 (F = W_A/h x this)."""
     return np.pi * np.power(n * h * Q, 2.0 / n)
+
+
+def rigid_dugdale_log_gradient(n, Q, h):
+    """Gradient of ln ``rigid_dugdale_area`` (Eq. 12) w.r.t. (n, ln Q) at heights ``h`` (m):
+    (len(h), 2), rows (2 (1 - ln(n h Q)) / n^2, 2 / n); for error propagation from cov(n, ln Q)."""
+    h = np.atleast_1d(np.asarray(h, float))
+    return np.column_stack([2.0 * (1.0 - np.log(n * h * Q)) / n**2, np.full(h.size, 2.0 / n)])
 
 
 def _model(p, r, h):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pipeline import h5io
-from pipeline.fits import FitError, fit_power_law, plot_tip_fits, read_fit, rigid_dugdale_area, run_fit
+from pipeline.fits import (FitError, fit_power_law, plot_tip_fits, read_fit, rigid_dugdale_area,
+                           rigid_dugdale_log_gradient, run_fit)
 
 NM = 1e-9
 
@@ -88,6 +89,19 @@ def _write_profile(path, r, z, flank, px=0.2 * NM):
             h5io.write_dataset(sg, "z", z[m], "m")
             if name == "combined":
                 h5io.write_dataset(sg, "flank", flank, "1")
+
+
+def test_rigid_dugdale_log_gradient_matches_central_differences():
+    """The analytic d ln A / d(n, ln Q) of Eq. 12 against central differences of
+    rigid_dugdale_area (step 1e-6: truncation ~1e-12, rounding ~1e-10 relative)."""
+    h = np.linspace(1e-9, 6e-9, 11)
+    e = 1e-6
+    for n, R in [(2.0, 10e-9), (3.7, 15e-9), (6.0, 25e-9)]:
+        Q = R ** (n - 1)
+        fd = np.column_stack([
+            (np.log(rigid_dugdale_area(n + e, Q, h)) - np.log(rigid_dugdale_area(n - e, Q, h))) / (2 * e),
+            (np.log(rigid_dugdale_area(n, Q * np.exp(e), h)) - np.log(rigid_dugdale_area(n, Q * np.exp(-e), h))) / (2 * e)])
+        assert np.allclose(rigid_dugdale_log_gradient(n, Q, h), fd, rtol=1e-7, atol=0)
 
 
 def test_run_fit_layout_and_plot(tmp_path):

@@ -332,18 +332,13 @@ def crb_summary(res: FisherResult, heights=np.arange(1, 7) * 1e-9, edge_snr=None
     Returns dict: crb_n, crb_n_opt, crb_logQ, crb_dugdale (per h, relative), crb_dugdale_opt,
     cond (condition number of the scaled Fisher matrix), cov_nlogQ (2 x 2, full).
     """
-    from pipeline.fits import rigid_dugdale_area
+    from pipeline.fits import rigid_dugdale_log_gradient
 
     n_bg = res.n_bg * (1.0 if edge_snr is None else (edge_snr / res.edge_snr) ** 2)
     n, Q = res.n, res.Q
     # (n, log r_ref) -> (n, log Q): log Q = n log r_ref - log n - log z_ref
     Jac = np.array([[1.0, 0.0], [math.log(res.r_ref) - 1.0 / n, n]])
-    # gradient of log A(h) w.r.t. (n, log Q), central differences of Eq. 12
-    e = 1e-6
-    h = np.asarray(heights, float)
-    g = np.stack([(np.log(rigid_dugdale_area(n + e, Q, h)) - np.log(rigid_dugdale_area(n - e, Q, h))) / (2 * e),
-                  (np.log(rigid_dugdale_area(n, Q * math.exp(e), h))
-                   - np.log(rigid_dugdale_area(n, Q * math.exp(-e), h))) / (2 * e)], axis=1)
+    g = rigid_dugdale_log_gradient(n, Q, heights)  # d log A(h) / d(n, log Q), Eq. 12
     out = {}
     for tag, names in (("", None), ("_opt", list(OPTIMISTIC))):
         C, nm, cond = res.covariance(names, n_bg)

@@ -13,9 +13,12 @@ import numpy as np
 
 def chord(radius, x):
     """Chord length 2 sqrt(radius^2 - x^2) (0 outside); same length unit as inputs."""
-    radius = np.maximum(radius, 0.0)  # no material where radius <= 0
-    d = np.square(radius) - np.square(x)
-    return 2.0 * np.sqrt(np.maximum(d, 0.0))
+    return chord_sq(np.square(np.maximum(radius, 0.0)), x)  # no material where radius <= 0
+
+
+def chord_sq(radius_sq, x):
+    """Chord length 2 sqrt(radius_sq - x^2) (0 outside) from the squared radius."""
+    return 2.0 * np.sqrt(np.maximum(radius_sq - np.square(x), 0.0))
 
 
 def eroded_radius(z, r_outer, thickness):

@@ -58,7 +58,7 @@ from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
 from pipeline.tem.edges import TipFrame
-from pipeline.tem.projection import chord, core_radius_table
+from pipeline.tem.projection import chord, chord_sq, core_radius_table
 
 __all__ = ["GlobalFit", "fit_silhouette", "reference_curve", "COAT_DCHI2"]
 
@@ -231,7 +231,7 @@ class _Body:
         # radius jumps from 0 to the face within a fraction of a row (rho interpolated
         # linearly put a noise-free coated n 4 apex 0.045 nm off, rho^2 0.01 nm)
         rho2 = self.rho2[i] * (1 - w) + self.rho2[i + 1] * w
-        t_o = np.where(below, 0.0, 2.0 * np.sqrt(np.maximum(rho2 - xx * xx, 0.0)))
+        t_o = np.where(below, 0.0, chord_sq(rho2, xx))
         for rad, hc, lo, hi in self.holes:
             j = np.nonzero((i >= lo) & (i < hi) & ~below)[0]
             ij, wj = i[j], w[j]
@@ -241,7 +241,7 @@ class _Body:
         if not core or self.coat <= 0:
             return t_o, t_o
         rc2 = self.rho_c2[i] * (1 - w) + self.rho_c2[i + 1] * w
-        return t_o, np.where(below, 0.0, 2.0 * np.sqrt(np.maximum(rc2 - xx * xx, 0.0)))
+        return t_o, np.where(below, 0.0, chord_sq(rc2, xx))
 
 
 class _Problem:
@@ -828,7 +828,7 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
 
     bp = best_physical()
     gain = cost1 - bp.cost if bp is not None else -np.inf
-    if not coat_hint and -3 * COAT_DCHI2 < gain <= COAT_DCHI2 or (bp is None and not coat_hint):
+    if not coat_hint and (bp is None or -3 * COAT_DCHI2 < gain <= COAT_DCHI2):
         # borderline: a layer neither found nor clearly excluded (or none physical yet); a
         # physical layer found worse than the single layer may be a local minimum (the thin
         # oxides missed at coarse pixels and low SNR ended at -13 to -26)
@@ -959,9 +959,9 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
     K = prob.K
     f1 = _Fitter(prob, coated=False)
     lim1 = bounds(False)
-    st1, JTJ1, names1, it = f1.run(np.concatenate([np.zeros(K), glob]), "full", max_iter, *lim1)
+    st1, _, _, it = f1.run(np.concatenate([np.zeros(K), glob]), "full", max_iter, *lim1)
     n_it += it
-    result = (f1, st1, JTJ1, names1)
+    fitter, st = f1, st1
     coat_test = {"model": "single"}
     if coat_hint and coat_hint > 0.95 * max_coat:
         # a given layer thicker than the fitted band: its core is outside the fitted pixels,
@@ -977,8 +977,7 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
         st2, it, coat_test = _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter)
         n_it += it
         if coat_test["model"] == "coated":
-            result = (f2, st2, None, None)
-    fitter, st, JTJ, names = result
+            fitter, st = f2, st2
     lim = bounds(fitter.coated)
     st, JTJ, names = fitter.polish(st, *lim)
     prob.map_c = None

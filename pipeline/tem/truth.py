@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.synth.tem_image import outer_radius
 
-__all__ = ["profile_errors", "force_errors", "reported_uncertainty", "evaluate_case"]
+__all__ = ["profile_errors", "force_errors", "reported_uncertainty", "coating_decision", "evaluate_case"]
 
 
 def _true_tip_coords(edge_px, truth):
@@ -74,14 +74,9 @@ def reported_uncertainty(profile, fit, heights=np.linspace(1e-9, 6e-9, 11), fit_
     fit window of the predicted SD of each point's normal offset, from the edge covariance;
     NaN without one).
     """
-    from pipeline.fits import rigid_dugdale_area
+    from pipeline.fits import rigid_dugdale_log_gradient
 
-    n, lnQ = fit.n, fit.ln_Q
-    e = 1e-6
-    h = np.asarray(heights, float)
-    g = np.stack([(np.log(rigid_dugdale_area(n + e, fit.Q, h)) - np.log(rigid_dugdale_area(n - e, fit.Q, h))) / (2 * e),
-                  (np.log(rigid_dugdale_area(n, np.exp(lnQ + e), h))
-                   - np.log(rigid_dugdale_area(n, np.exp(lnQ - e), h))) / (2 * e)], axis=1)
+    g = rigid_dugdale_log_gradient(fit.n, fit.Q, heights)
     sd_f = np.sqrt(np.einsum("hi,ij,hj->h", g, np.asarray(fit.cov_n_lnQ), g))
     edge_sd = float("nan")
     if profile.offset_basis is not None and profile.offset_cov is not None:
@@ -89,6 +84,15 @@ def reported_uncertainty(profile, fit, heights=np.linspace(1e-9, 6e-9, 11), fit_
         B = profile.offset_basis[m]
         edge_sd = float(np.sqrt(np.mean(np.einsum("ij,jk,ik->i", B, profile.offset_cov, B))))
     return dict(sigma_n=float(fit.sigma_n), sigma_force=float(np.max(sd_f)), edge_sd=edge_sd)
+
+
+def coating_decision(profile):
+    """The edge model's light-layer decision: "found" (coated model kept), "flagged" (coating
+    ambiguous: neither found nor excluded) or "single" (no layer, unflagged)."""
+    ct = profile.edge_model.get("coating_test") or {}
+    if ct.get("model") == "coated":
+        return "found"
+    return "flagged" if ct.get("ambiguous") else "single"
 
 
 TIP_SHAPES = {2: 10e-9, 3: 15e-9, 4: 20e-9, 5: 22e-9, 6: 25e-9}  # n -> R (m), S = 1
