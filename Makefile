@@ -17,8 +17,15 @@ run: $(BIN)/.installed          ## run the whole pipeline on data_samples/ -> re
 	$(BIN)/snakemake --cores $(CORES)
 	@echo; echo "== results/summary.csv =="; cat results/summary.csv
 
-test: $(BIN)/.installed         ## the default (fast) test suite
+# A second arithmetic path: OpenBLAS's generic kernels and numpy without its AVX2/AVX-512 loops
+# (names it does not know are ignored).  The TEM fit must give the same result on any x86-64
+# CPU, so its tests run again there: a tolerance that holds on one path only fails here.
+ALT_ARITHMETIC := OPENBLAS_CORETYPE=Prescott NPY_DISABLE_CPU_FEATURES=X86_V3,X86_V4,AVX512_ICL,AVX512_SPR
+TEM_TESTS := tests/test_tem_silhouette_fit.py tests/test_tem_profiles.py tests/test_fits.py
+
+test: $(BIN)/.installed         ## the default (fast) test suite, then the TEM tests on a second arithmetic path
 	$(BIN)/pytest
+	$(ALT_ARITHMETIC) $(BIN)/pytest $(TEM_TESTS)
 
 test-all: $(BIN)/.installed     ## include the slow tests
 	$(BIN)/pytest -m "slow or not slow"

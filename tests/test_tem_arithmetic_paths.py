@@ -1,0 +1,71 @@
+"""The TEM fit gives the same answer whatever the CPU's vector instructions and BLAS kernels.
+
+A fresh AMD EPYC machine failed a test that passed elsewhere: the coated silhouette fit
+stopped on a jump of its own model (the core table put the core's apex on a grid row, so
+chi^2 jumped by 12 as the layer thickness crossed 7.5 px) and where it stopped depended on
+the rounding of OpenBLAS's kernels (n 4.024 with AMD's, 4.013 with generic ones).  Here
+representative cases are fitted in this process and again in a subprocess on a second
+arithmetic path (OpenBLAS's generic Prescott kernels, numpy without its AVX2/AVX-512
+loops); the results must agree to a small fraction of every test tolerance (0.1 in n,
+0.02 on clean images).  Measured on AMD EPYC: n agrees within 0.0026 (clean coated) and
+0.0002 (the others); sigma_n within 1 % where the image
+has noise (25 % on the noise-free coated image, whose sigma_n is model error only).  ``make test`` also runs the TEM tests on that
+path.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ALT_PATH = {"OPENBLAS_CORETYPE": "Prescott", "NPY_DISABLE_CPU_FEATURES": "X86_V3,X86_V4,AVX512_ICL,AVX512_SPR",
+            "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+# (n, pixel size, blur px, edge SNR, rotation deg, coating m, keywords)
+CASES = {
+    "clean coated n 4, flat face (the case that failed)": (4.0, 0.25e-9, 0.5, np.inf, -8.0, 1.5e-9,
+                                                             dict(orientation="up", seed=3, R=20e-9, shape=(384, 384))),
+    "oxide n 4, SNR 20": (4.0, 0.2e-9, 1.0, 20.0, 3.0, 1.5e-9, dict(orientation="down", seed=11)),
+    "clean oxide n 6, 0.5 nm px": (6.0, 0.5e-9, 2.0, np.inf, 7.0, 1.5e-9, dict(orientation="down", seed=208)),
+}
+N_AGREE = {"clean coated n 4, flat face (the case that failed)": 0.005}  # 25 % of that test's 0.02
+N_AGREE_DEFAULT = 0.002  # 2 % of the 0.1 target
+
+
+def fit_cases() -> dict:
+    from pipeline.tem.truth import evaluate_case
+
+    out = {}
+    for name, (n, px, blur, snr, rot, coat, kw) in CASES.items():
+        e = evaluate_case(n, px, blur, snr, rot, coat, **kw)
+        out[name] = {"n": float(e["fit"].n), "sigma_n": float(e["sigma_n"]), "rms_nm": float(e["rms_normal"] * 1e9)}
+    return out
+
+
+@pytest.mark.skipif(os.environ.get("OPENBLAS_CORETYPE") == ALT_PATH["OPENBLAS_CORETYPE"],
+                    reason="already on the second arithmetic path")
+def test_tem_fit_is_the_same_on_a_second_arithmetic_path():
+    here = fit_cases()
+    env = {**os.environ, **ALT_PATH}
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve())], env=env, cwd=root,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    there = json.loads(proc.stdout.strip().splitlines()[-1])
+    for name, a in here.items():
+        b = there[name]
+        assert abs(a["n"] - b["n"]) < N_AGREE.get(name, N_AGREE_DEFAULT), (name, a, b)
+        # sigma_n of a noise-free image is the 0.2 % model-error floor and the edge's residual
+        # about the power law, not noise: it differs by up to 25 % (clean coated n 4)
+        rel = 0.1 if np.isfinite(CASES[name][3]) else 0.35
+        assert abs(a["sigma_n"] - b["sigma_n"]) < rel * a["sigma_n"], (name, a, b)
+        assert abs(a["rms_nm"] - b["rms_nm"]) < 0.005, (name, a, b)
+
+
+if __name__ == "__main__":
+    print(json.dumps(fit_cases()))
