@@ -22,7 +22,11 @@ Per traction law this stage computes
   estimated from the MC samples (this keeps the shared calibration/E* errors from
   counting as inconsistency), chi2(h) its residual; h = argmin chi2 refined by a
   parabola in ln h; W_A = GLS mean there.  The CI comes from repeating the minimisation
-  for every MC sample (percentiles of the per-sample estimates).
+  for every MC sample (percentiles of the per-sample estimates).  Where the intervals disagree
+  more than their uncertainties allow (chi2_min/dof > 1), the spread of the per-sample
+  estimates is scaled by the Birge ratio sqrt(chi2_min/dof) and the note says so and by how
+  much (``_widen_if_inconsistent``); with one worn interval it says that agreement cannot be
+  tested.
 
 Range conventions: L-J in the z0 = h/0.974 convention (the h reported is the
 Dugdale-equivalent h; z0 is given too); Tri2 h is the Dugdale-equivalent h (separation
@@ -360,14 +364,53 @@ def analyse_law(inv: dict, law: str) -> dict:
     g["status"] = "ok"
     g["h"] = float(np.exp(xs[0]))
     g["W_A"] = float(np.exp(ms[0]))
-    if g["dof"] > 0:
-        from scipy.special import chdtrc
-
-        g["p_value"] = float(chdtrc(g["dof"], g["chi2_min"]))
-        if g["p_value"] < 0.01:
-            g["note"] += f"intervals mutually inconsistent (chi2 = {g['chi2_min']:.3g} for {g['dof']} dof)"
-    # reference value at the estimate
+    _widen_if_inconsistent(g, xs[0], ms[0], xss_c, mss, edge_s, x)
     return res
+
+
+def birge_ratio(chi2_min: float, dof: int) -> float:
+    """sqrt(chi2/dof) when it exceeds 1, else 1 (NaN without degrees of freedom)."""
+    if dof <= 0 or not np.isfinite(chi2_min):
+        return np.nan
+    return float(max(1.0, np.sqrt(max(chi2_min, 0.0) / dof)))
+
+
+def _widen_if_inconsistent(g, x0, m0, xss, mss, edge_s, x):
+    """Scale the spread of the per-sample global h and W_A by the Birge ratio (module doc).
+
+    The GLS chi^2 of the intervals about the common W_A(h) at the estimate, with dof = number
+    of intervals - 2 (h and W_A fitted), says whether they agree within the uncertainties the
+    Monte Carlo carries.  When chi^2/dof > 1 they disagree more than those allow (an InvOLS not
+    remeasured after a remount, a biased reference, a shape error), by an amount the data show
+    but whose cause they do not: every interval's uncertainty is scaled by S = sqrt(chi^2/dof)
+    (Birge 1932; the Particle Data Group's scale factor), which scales the spread of the
+    per-sample estimates about the central one by S.  A multiplicative scale (rather than an
+    added between-interval variance) keeps the relative weights the data support and needs no
+    further parameter, which 1-4 degrees of freedom cannot estimate; it never narrows (S >= 1)."""
+    if g["dof"] <= 0:
+        g["birge_ratio"] = np.nan
+        g["note"] += ("one worn interval: whether the intervals agree cannot be tested, the interval of h rests on "
+                      "the stated uncertainties alone. ")
+        return
+    from scipy.special import chdtrc
+
+    g["p_value"] = float(chdtrc(g["dof"], g["chi2_min"]))
+    S = birge_ratio(g["chi2_min"], g["dof"])
+    g["birge_ratio"] = S
+    if S <= 1.0:
+        return
+    xw = x0 + S * (xss - x0)
+    mw = m0 + S * (mss - m0)
+    # a widened sample beyond the grid is open (censored) on that side
+    side = np.where(np.isfinite(xw) & (xw < x[0]), -1, np.where(np.isfinite(xw) & (xw > x[-1]), 1, edge_s))
+    xw = np.where((xw < x[0]) | (xw > x[-1]), np.nan, xw)
+    g["h_pcts_unscaled"] = g["h_pcts"]
+    g["W_pcts_unscaled"] = g["W_pcts"]
+    g["h_pcts"] = np.exp(censored_percentiles(xw, side, CI_PCTS, x[0], x[-1]))
+    g["W_pcts"] = np.exp(censored_percentiles(mw, np.zeros_like(edge_s), CI_PCTS, -np.inf, np.inf))
+    verdict = "mutually inconsistent" if g["p_value"] < 0.05 else "scattered a little more than their uncertainties allow"
+    g["note"] += (f"intervals {verdict} (chi2 = {g['chi2_min']:.3g} for {g['dof']} dof, p = {g['p_value']:.2g}): "
+                  f"the confidence intervals of h and W_A are widened by the Birge ratio sqrt(chi2/dof) = {S:.2f}. ")
 
 
 def _nanvar_cols(y):
@@ -452,8 +495,11 @@ def write_range_h5(out_h5, inv, results, *, tip="", source=""):
             d = inv["intervals"][nm]
             g = create_group(gi, nm, scans=d["scans"], reference=d["reference"], n_flag=d["n_flag"])
             for key, unit in (("n", "1"), ("u_n", "1"), ("n_used", "1"), ("ln_Q_used", "1"), ("Q", "m^(n-1)"), ("R", "m"), ("S", "1"),
-                              ("F_p_mean", "N"), ("F_p_sem", "N"), ("F_p_std", "N"), ("n_curves", "1")):
-                write_dataset(g, key, d[key], unit)
+                              ("F_p_mean", "N"), ("F_p_sem", "N"), ("F_p_std", "N"), ("n_curves", "1"),
+                              ("invols", "m/V"), ("u_invols", "m/V"), ("invols_method", "1"), ("invols_contact", "m/V"),
+                              ("u_invols_contact", "m/V"), ("invols_check", "1")):
+                if key in d:  # the InvOLS keys: inversion files written since InvOLS is per interval
+                    write_dataset(g, key, d[key], unit)
             dl = d["laws"].get("dugdale")
             if dl is not None:
                 write_dataset(g, "Lambda", dl["Lambda"], "1", "Lambda(h) at the central Dugdale W_A(h)")
@@ -503,6 +549,11 @@ def write_range_h5(out_h5, inv, results, *, tip="", source=""):
                 write_dataset(g, "chi2_min", gg["chi2_min"], "1")
                 write_dataset(g, "dof", gg["dof"], "1", "number of intervals used - 2")
                 write_dataset(g, "p_value", gg.get("p_value", np.nan), "1", "chi2 survival probability")
+                write_dataset(g, "birge_ratio", gg.get("birge_ratio", np.nan), "1",
+                              "max(1, sqrt(chi2_min/dof)): the factor the CIs were widened by (NaN: dof 0)")
+                if "h_pcts_unscaled" in gg:
+                    write_dataset(g, "h_pcts_unscaled", gg["h_pcts_unscaled"], "m", "h percentiles before the Birge scaling")
+                    write_dataset(g, "W_pcts_unscaled", gg["W_pcts_unscaled"], "J/m^2", "W_A percentiles before the Birge scaling")
                 if "h_samples" in gg:
                     write_dataset(g, "h_samples", gg["h_samples"], "m", "per-sample global h")
                     write_dataset(g, "W_samples", gg["W_samples"], "J/m^2", "per-sample common W_A")

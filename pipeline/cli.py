@@ -69,7 +69,7 @@ def cmd_forces(a):
     iv = _interval(tip, a.interval)
     run_forces(
         [str(p) for p in iv["curve_paths"]], a.out_h5, a.out_png,
-        cantilever=tip["cantilever"], reader=tip["force_curves"], tip=tip["name"], interval=iv["name"],
+        cantilever=tip["cantilever"], reader=tip["force_curves"], tip=tip["name"], interval=iv["name"], interval_cfg=iv,
     )
 
 
@@ -205,7 +205,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    import logging
+
     args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         args.func(args)
     except (ValueError, OSError, RuntimeError) as exc:  # our errors name the file and the reason

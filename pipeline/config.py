@@ -262,6 +262,14 @@ def load_tip_config(path, check_files: bool = True) -> dict:
                     f"{path}: intervals[{i}].curves: no force-curve files found at {str(data_dir / iv['curves'])!r} "
                     f"(expected a folder or glob of {', '.join(CURVE_SUFFIXES)})"
                 )
+        if "calibration_curves" in iv:
+            iv["calibration_paths"] = list_curve_files(iv["calibration_curves"], data_dir) if data_dir.is_dir() else []
+            if check_files and not iv["calibration_paths"]:
+                raise ConfigError(f"{path}: intervals[{i}].calibration_curves: no force-curve files found at "
+                                  f"{str(data_dir / iv['calibration_curves'])!r}")
+        if iv.get("deflection_sensitivity_uncertainty") is not None and "deflection_sensitivity" not in iv:
+            raise ConfigError(f"{path}: intervals[{i}].deflection_sensitivity_uncertainty is given without "
+                              "deflection_sensitivity")
 
     tip.setdefault("cantilever", {})["base_dir"] = str(data_dir)
     tip.setdefault("force_curves", {})["base_dir"] = str(data_dir)

@@ -43,7 +43,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from pipeline.h5io import atomic_h5, create_group, read_dataset, write_dataset
+from pipeline.h5io import atomic_h5, create_group, read_attr_json, read_dataset, write_dataset
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +159,13 @@ def load_forces(path) -> dict:
         u_invols = float(_get(cal, "u_invols", 0.0)) if cal else 0.0
         if u_cal_rel is None and cal:
             u_cal_rel = _get(cal, "u_factor_rel", None)
+        # files written before InvOLS was per interval: one value for the whole tip
+        shared = bool(_get(cal, "invols_shared", True)) if cal else True
+        inv_method = str(_get(cal, "invols_method", "")) if cal else ""
+        inv_check = str(_get(cal, "invols_check", "")) if cal else ""
+        inv_contact = float(_get(cal, "invols_contact", np.nan)) if cal else np.nan
+        u_inv_contact = float(_get(cal, "u_invols_contact", np.nan)) if cal else np.nan
+        warnings = list(read_attr_json(f, "warnings")) if "warnings" in f.attrs else []
     return {
         "F_p_mean": fp_mean,
         "F_p_std": fp_std,
@@ -172,6 +179,12 @@ def load_forces(path) -> dict:
         "u_invols": u_invols,
         # relative 1-sigma of k * InvOLS (correlations included) if stage 3 gives it, else NaN
         "u_cal_rel": float(u_cal_rel) if u_cal_rel is not None else np.nan,
+        "invols_shared": shared,
+        "invols_method": inv_method,
+        "invols_check": inv_check,
+        "invols_contact": inv_contact,
+        "u_invols_contact": u_inv_contact,
+        "warnings": warnings,
     }
 
 
@@ -370,6 +383,17 @@ def draw_systematic(ss, cal, E_star, u_E_star, size):
     return {"k_factor": fk, "invols_factor": fi, "cal_factor": cf, "E_star": es}
 
 
+def interval_calibration_factor(ss, sysd, forces, size):
+    """(k InvOLS)/(k0 InvOLS0) of one interval per MC sample: k drawn once per tip (shared), the
+    interval's own InvOLS drawn on its own; a tip-level InvOLS shares the tip's draw (with its
+    correlation to a reference-lever k)."""
+    if forces["invols_shared"]:
+        return sysd["cal_factor"]
+    inv, u_inv = forces["invols"], np.nan_to_num(forces["u_invols"])
+    fi = _truncnormal(np.random.default_rng(ss), 1.0, u_inv / inv, size) if np.isfinite(inv) and inv > 0 else np.ones(size)
+    return sysd["k_factor"] * fi
+
+
 def draw_interval(ss, fit, forces, size):
     rng = np.random.default_rng(ss)
     fp = _draw_mean(rng, forces["F_p_mean"], forces["F_p_sem"], forces["n_curves"], size)
@@ -434,11 +458,13 @@ def run_inversion(
     fits = {nm: load_fit(fit_h5s[nm]) for nm in names}
     forces = {nm: load_forces(forces_h5s[nm]) for nm in names}
 
-    # calibration is one per tip: take the first interval's, check the others agree
+    # k is one per tip: take the first interval's, check the others agree; InvOLS is each
+    # interval's own (the chip is remounted) unless stage 3 says it is shared by the tip
     cal = forces[names[0]]
     cal_notes = []
+    keys = ("k",) if not all(forces[nm]["invols_shared"] for nm in names) else ("k", "invols")
     for nm in names[1:]:
-        for key in ("k", "invols"):
+        for key in keys:
             a, b = cal[key], forces[nm][key]
             if np.isfinite(a) and np.isfinite(b) and not np.isclose(a, b, rtol=1e-9):
                 cal_notes.append(f"{key} of {nm} ({b:g}) differs from {names[0]} ({a:g}); using {names[0]}'s")
@@ -446,7 +472,7 @@ def run_inversion(
         log.warning(note)
 
     ss = _seed_sequence(seed, tip)
-    children = ss.spawn(1 + len(names))
+    children = ss.spawn(1 + 2 * len(names))  # systematic, per-interval draws, per-interval InvOLS
     sysd = draw_systematic(children[0], cal, float(E_star), float(u_E_star), S)
 
     results = {}
@@ -458,13 +484,14 @@ def run_inversion(
             n_c, lnq_c, n_flag = np.nan, np.nan, "fit_flagged"  # flagged in stage 2: not silently used
         q_c = float(np.exp(lnq_c)) if np.isfinite(lnq_c) else np.nan
         dr = draw_interval(children[1 + i], fit, fo, S)
+        dr["cal_factor"] = interval_calibration_factor(children[1 + len(names) + i], sysd, fo, S)
         if n_flag not in ("ok", "n_clipped_to_2"):
             dr["n"][:] = np.nan
-        F_s = (dr["F_p_mean"] * sysd["cal_factor"])[:, None]
+        F_s = (dr["F_p_mean"] * dr["cal_factor"])[:, None]
         n_s = dr["n"][:, None]
         q_s = np.exp(dr["ln_Q"])[:, None]
         e_s = sysd["E_star"][:, None]
-        notes = []
+        notes = list(fo["warnings"])
         if not (np.isfinite(fo["F_p_sem"]) and fo["F_p_sem"] > 0):
             notes.append("no statistical uncertainty of F_p (fewer than 2 curves): only calibration/fit/E* propagated")
         if n_flag == "n_clipped_to_2":
@@ -509,7 +536,8 @@ def run_inversion(
         exact=bool(exact),
         interval_order=names,
         fp_sampling="Student t (dof = n_curves - 1; normal if < 3 curves) around F_p_mean with F_p_sem, truncated > 0",
-        systematic="k, InvOLS and E* drawn once per sample, shared by all intervals",
+        systematic="k and E* drawn once per sample, shared by all intervals; InvOLS per interval (its own draw) "
+                   "unless stage 3 marks it shared by the tip",
         n_policy=N_POLICY,
         conventions=CONVENTIONS,
         calibration_notes=cal_notes,
@@ -548,9 +576,17 @@ def run_inversion(
             write_dataset(g, "F_p_sem", fo["F_p_sem"], "N", "standard error of the mean")
             write_dataset(g, "F_p_std", fo["F_p_std"], "N", "standard deviation of the curves")
             write_dataset(g, "n_curves", fo["n_curves"], "1", "curves used")
+            write_dataset(g, "invols", fo["invols"], "m/V", "InvOLS used for this interval")
+            write_dataset(g, "u_invols", fo["u_invols"], "m/V", "its 1-sigma uncertainty")
+            write_dataset(g, "invols_method", fo["invols_method"], "1", "where it came from (stage 3)")
+            write_dataset(g, "invols_shared", fo["invols_shared"], "1", "one InvOLS for the whole tip")
+            write_dataset(g, "invols_contact", fo["invols_contact"], "m/V", "InvOLS from the interval's own contact slopes")
+            write_dataset(g, "u_invols_contact", fo["u_invols_contact"], "m/V", "its uncertainty")
+            write_dataset(g, "invols_check", fo["invols_check"], "1", "'' or what disagrees with the contact slope")
             gs = create_group(g, "draws")
             dr = res["draws"]
             write_dataset(gs, "F_p_mean", dr["F_p_mean"], "N", "sampled mean F_p (before the calibration factor)")
+            write_dataset(gs, "cal_factor", dr["cal_factor"], "1", "(k InvOLS)/(k0 InvOLS0) of this interval per sample")
             write_dataset(gs, "n", dr["n"], "1", "sampled n after clipping (NaN: invalid draw)")
             write_dataset(gs, "n_raw", dr["n_raw"], "1", "sampled n before clipping")
             write_dataset(gs, "ln_Q", dr["ln_Q"], "1", "sampled ln Q after clipping")
@@ -665,6 +701,21 @@ __all__ = [
 
 
 # ------------------------------------------------------------- synthetic wear tests
+def write_synthetic_fit(path, n_obs, lnr_obs, S, cov, flags=("synthetic",), rms_residual=0.1e-9):
+    """A stage-2 style fit file with the fitted (n, ln R) and the covariance of (n, ln Q)."""
+    lnq_obs = (n_obs - 2.0) * np.log(S) + (n_obs - 1.0) * lnr_obs
+    with atomic_h5(path, stage="fit", synthetic=True) as f:
+        g = create_group(f, "fit")
+        write_dataset(g, "n", n_obs, "1")
+        write_dataset(g, "ln_Q", lnq_obs, "1")
+        write_dataset(g, "Q", np.exp(lnq_obs), "m^(n-1)")
+        write_dataset(g, "R", np.exp(lnr_obs), "m")
+        write_dataset(g, "S", S, "1")
+        write_dataset(g, "cov_n_lnQ", cov, "1")
+        write_dataset(g, "rms_residual", rms_residual, "m")
+        write_dataset(g, "flags", np.array(list(flags), dtype=object), "1")
+
+
 def write_synthetic_inputs(outdir, *, W_A, h, E_star, intervals, u_E_star=0.0, n_curves=40, rel_sd_curve=0.08,
                            sigma_n=0.02, sigma_lnR=0.02, k=0.2, u_k=0.0, invols=50e-9, u_invols=0.0,
                            seed=1, perturb=True, potential="dugdale", model="mdn", exact=True, mechanics=None):
@@ -692,20 +743,10 @@ def write_synthetic_inputs(outdir, *, W_A, h, E_star, intervals, u_E_star=0.0, n
             curves = curves - curves.mean() + F_true
         n_obs = n + (sigma_n * rng.standard_normal() if perturb else 0.0)
         lnr_obs = np.log(R) + (sigma_lnR * rng.standard_normal() if perturb else 0.0)
-        lnq_obs = (n_obs - 2.0) * np.log(S) + (n_obs - 1.0) * lnr_obs
         J = np.array([[1.0, 0.0], [np.log(S) + lnr_obs, n_obs - 1.0]])
         cov = J @ np.diag([sigma_n**2, sigma_lnR**2]) @ J.T
         fpath = outdir / "fits" / f"{nm}.h5"
-        with atomic_h5(fpath, stage="fit", synthetic=True) as f:
-            g = create_group(f, "fit")
-            write_dataset(g, "n", n_obs, "1")
-            write_dataset(g, "ln_Q", lnq_obs, "1")
-            write_dataset(g, "Q", np.exp(lnq_obs), "m^(n-1)")
-            write_dataset(g, "R", np.exp(lnr_obs), "m")
-            write_dataset(g, "S", S, "1")
-            write_dataset(g, "cov_n_lnQ", cov, "1")
-            write_dataset(g, "rms_residual", 0.1e-9, "m")
-            write_dataset(g, "flags", np.array(["synthetic"], dtype=object), "1")
+        write_synthetic_fit(fpath, n_obs, lnr_obs, S, cov)
         ppath = outdir / "forces" / f"{nm}.h5"
         with atomic_h5(ppath, stage="forces", synthetic=True, F_p_true=F_true) as f:
             g = create_group(f, "interval")

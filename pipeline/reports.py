@@ -76,7 +76,8 @@ def tip_report_rows(rng: dict) -> tuple[list, list]:
     h = rng["h"]
     laws = rng["law_order"]
     cols = ["tip", "interval", "scans", "reference", "n", "u_n", "n_flag", "R_nm", "S", "Q_nm_pow_n_minus_1",
-            "F_p_nN", "u_F_p_nN", "F_p_sd_nN", "n_curves"]
+            "F_p_nN", "u_F_p_nN", "F_p_sd_nN", "n_curves", "invols_nm_per_V", "u_invols_nm_per_V", "invols_method",
+            "invols_contact_nm_per_V", "u_invols_contact_nm_per_V", "invols_check"]
     for law in laws:
         cols += [f"W_A_{law}_mJ_per_m2", f"h_{law}_nm", f"h_{law}_low_nm", f"h_{law}_high_nm",
                  f"h_{law}_status", f"h_{law}_crossings_nm", f"h_{law}_note"]
@@ -100,6 +101,11 @@ def tip_report_rows(rng: dict) -> tuple[list, list]:
             "F_p_nN": to_unit(float(d["F_p_mean"]), "nN"), "u_F_p_nN": to_unit(float(d["F_p_sem"]), "nN"),
             "F_p_sd_nN": to_unit(float(d["F_p_std"]), "nN"), "n_curves": int(d["n_curves"]), "ci_level": CI_LEVEL,
         }
+        for key in ("invols", "u_invols", "invols_contact", "u_invols_contact"):
+            if key in d:
+                row[f"{key}_nm_per_V"] = to_unit(float(d[key]), "nm/V")
+        for key in ("invols_method", "invols_check"):
+            row[key] = str(d.get(key, ""))
         for law in laws:
             L = rng["laws"][law]
             iv = L["intervals"][nm]
@@ -152,7 +158,8 @@ SUMMARY_COLUMNS = [
     "tip", "law", "solver_mode", "W_A_mJ_per_m2", "u_W_A_mJ_per_m2", "W_A_low_mJ_per_m2", "W_A_high_mJ_per_m2",
     "h_nm", "u_h_nm", "h_low_nm", "h_high_nm", "h_full_range_nm", "h_full_range_low_nm", "h_full_range_high_nm",
     "z0_lj_nm", "h_crossings_min_nm", "h_crossings_max_nm", "W_A_ref_mJ_per_m2", "u_W_A_ref_mJ_per_m2",
-    "W_A_ref_max_rel_change_over_h", "n_intervals_used", "n_intervals_crossing", "chi2", "dof", "p_value", "ci_level",
+    "W_A_ref_max_rel_change_over_h", "n_intervals_used", "n_intervals_crossing", "chi2", "dof", "p_value",
+    "ci_scale_birge", "h_change_per_reference_percent", "ci_level",
     "h_convention", "status", "notes",
 ]
 
@@ -188,6 +195,7 @@ def summary_rows(rng: dict) -> list:
                 row["chi2"] = float(g["chi2_min"])
                 row["dof"] = int(g["dof"])
                 row["p_value"] = float(g.get("p_value", np.nan))
+                row["ci_scale_birge"] = float(g.get("birge_ratio", np.nan))
             row["n_intervals_used"] = len(g.get("intervals_used", []))
             if g.get("note"):
                 notes.append(str(g["note"]).strip())
@@ -199,11 +207,21 @@ def summary_rows(rng: dict) -> list:
             row["W_A_ref_max_rel_change_over_h"] = float(ref["max_rel_change"])
             if status != "ok":
                 notes.append(f"W_A_ref at h = {_nm(g.get('W_ref_h', np.nan)):.3g} nm (grid centre)")
+        # how much h rests on the reference: d ln h / d ln W_ref = 1 / |d ln(W/W_ref) / d ln h| at each crossing
+        slopes = [float(iv["slope"]) for iv in L["intervals"].values() if iv["status"] == "ok" and float(iv["slope"]) > 0]
+        if slopes and status == "ok":
+            row["h_change_per_reference_percent"] = float(np.median(1.0 / np.asarray(slopes)))
+            notes.append(f"h rests on the reference interval: a 1 % error of its W_A (its pull-off or R) moves h by "
+                         f"{row['h_change_per_reference_percent']:.2g} %, which the agreement of the intervals reveals only in part")
         crossings = [float(iv["h_cross"]) for iv in L["intervals"].values() if iv["status"] == "ok"]
         row["n_intervals_crossing"] = len(crossings)
         if crossings:
             row["h_crossings_min_nm"] = _nm(min(crossings))
             row["h_crossings_max_nm"] = _nm(max(crossings))
+        flagged = [nm for nm in rng["order"] if str(rng["intervals"][nm].get("invols_check", ""))]
+        if flagged:
+            notes.append(f"InvOLS in use disagrees with the contact slope in {', '.join(flagged)} (invols_check in "
+                         f"{rng['tip']}_report.csv): a remount without a new InvOLS, or a soft counter-surface")
         bad = [f"{nm}: {iv['status']}" for nm, iv in L["intervals"].items() if iv["status"] not in ("ok", "reference")]
         if bad:
             notes.append("intervals " + "; ".join(bad))

@@ -93,7 +93,7 @@ def test_custom_columns_and_units(tmp_path):
     p = tmp_path / "c.tsv"
     df.to_csv(p, sep="\t", index=False)
     reader = {"columns": {"height": "Z (um)", "deflection": "Defl (nm)", "segment": "dir"}, "height_unit": "um",
-              "deflection_unit": "nm", "height_axis": "extension"}
+              "deflection_unit": "nm", "height_axis": "extension", "min_curves": 1}
     (cv,) = read_curves(p, reader)
     assert cv.defl_units == "m"
     out = tmp_path / "o.h5"

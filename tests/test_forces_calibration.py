@@ -5,6 +5,8 @@ import pytest
 from pipeline.forces.calibration import calibrate
 from pipeline.forces.curve import ForceCurve
 from pipeline.forces.errors import CalibrationError
+from pipeline.forces.invols import resolve_interval_invols
+from pipeline.forces.settings import CANTILEVER_DEFAULTS, with_defaults
 from pipeline.forces.reference_lever import reference_lever_k
 from pipeline.forces.thermal import K_B, fit_sho, psd_from_series, thermal_k
 from pipeline.synth.force_curves import make_force_curve, thermal_noise_series, write_curve_csv, write_thermal_csv
@@ -72,7 +74,15 @@ def test_precedence_yaml_over_file_and_errors():
     assert (cal.k, cal.invols, cal.k_method) == (0.25, 42e-9, "given")
     with pytest.raises(CalibrationError, match="different spring constant"):
         calibrate({}, [_curve(0.3, 40e-9), _curve(0.31, 40e-9)])
+    # one InvOLS for the whole tip asked for, none to be had: the tip-level calibration says so
     with pytest.raises(CalibrationError, match="InvOLS"):
-        calibrate({"spring_constant": 0.2}, [_curve()])
+        calibrate({"spring_constant": 0.2, "deflection_sensitivity_method": "file"}, [_curve()])
+    # per interval (auto): the tip level has none, and the interval's flat curves give no contact
+    # slope either: the interval fails naming itself and the settings
+    cal = calibrate({"spring_constant": 0.2}, [_curve()])
+    assert np.isnan(cal.invols)
+    with pytest.raises(CalibrationError, match=r"tip 'x' interval 'y': no curve gives an InvOLS.*contact_fallback"):
+        resolve_interval_invols(with_defaults({"spring_constant": 0.2}, CANTILEVER_DEFAULTS), {}, [_curve()], cal,
+                                reader={}, label="tip 'x' interval 'y'")
     with pytest.raises(CalibrationError, match="spring constant"):
         calibrate({"deflection_sensitivity": 40e-9}, [_curve()])

@@ -78,7 +78,7 @@ def test_stage_end_to_end(tmp_path):
     paths = [write_curve_csv(tmp_path / f"c{i}.csv", make_force_curve(f, k, invols, seed=i, tilt=1e5)) for i, f in enumerate(F)]
     out, png = tmp_path / "o.h5", tmp_path / "o.png"
     cant = {"spring_constant": k, "spring_constant_uncertainty": 0.01, "deflection_sensitivity": invols,
-            "deflection_sensitivity_uncertainty": 1e-9, "base_dir": str(tmp_path)}
+            "deflection_sensitivity_uncertainty": 1e-9, "deflection_sensitivity_method": "given", "base_dir": str(tmp_path)}
     run_forces(paths, out, png, cantilever=cant, reader={}, tip="T", interval="i0")
     assert png.stat().st_size > 10_000
     with h5py.File(out) as f:

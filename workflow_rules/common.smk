@@ -58,6 +58,9 @@ STAGE_KEYS = {
 }
 
 
+INTERVAL_FORCE_KEYS = ("deflection_sensitivity", "deflection_sensitivity_uncertainty", "calibration_curves")
+
+
 def stage_settings(stage):
     def settings(wildcards):
         tip = TIPS[wildcards.tip]
@@ -66,6 +69,9 @@ def stage_settings(stage):
         picked = {k: src.get(k) for k in keys}
         if stage == "inversion":
             picked["intervals"] = [(iv["name"], iv["scans"]) for iv in tip["intervals"]]
+        if stage == "forces":  # the interval's own InvOLS settings
+            iv = interval_cfg(wildcards)
+            picked["interval"] = {k: iv.get(k) for k in INTERVAL_FORCE_KEYS}
         return json.dumps(picked, sort_keys=True, default=str)
 
     return settings

@@ -6,6 +6,7 @@ rule forces:
         CONDA_ENV
     input:
         curves=lambda w: [str(p) for p in interval_cfg(w)["curve_paths"]],
+        calibration=lambda w: [str(p) for p in interval_cfg(w).get("calibration_paths", [])],
     output:
         h5=f"{RESULTS}/{{tip}}/forces/{{interval}}.h5",
         png=report(f"{RESULTS}/{{tip}}/forces/{{interval}}.png", category="3 Forces", subcategory="{tip}"),

@@ -1,9 +1,13 @@
-"""Cantilever calibration: spring constant k (N/m) and deflection sensitivity InvOLS (m/V).
+"""Cantilever calibration at tip level: spring constant k (N/m) and the InvOLS (m/V) of the
+calibration session.
 
-InvOLS, in order of precedence (``deflection_sensitivity_method: auto``):
-``given`` (cantilever.deflection_sensitivity) > ``hard_sample`` (contact slope of the
-curves in cantilever.hard_sample_curves) > ``file`` (metadata of the force curves).
-k: ``given`` (cantilever.spring_constant) > ``reference_lever`` > ``thermal`` > ``file``.
+k belongs to the lever and is one per tip: ``given`` (cantilever.spring_constant) >
+``reference_lever`` > ``thermal`` > ``file``.  The InvOLS that converts an interval's
+deflection is one per interval by default (``pipeline.forces.invols``); the tip-level InvOLS
+here, ``given`` (cantilever.deflection_sensitivity) > ``hard_sample`` (contact slope of the
+curves in cantilever.hard_sample_curves) > ``file`` (metadata of the force curves), is the one
+of the calibration session (the reference-lever and thermal k need it), the value used for
+every interval when the method says so (a setup never remounted), and a fallback.
 
 Every input carries a 1-sigma uncertainty (0 when unknown: stated in the source
 string); k, InvOLS and their product k*InvOLS (N/V, the factor turning Delta in
@@ -20,6 +24,7 @@ import numpy as np
 from pipeline.forces.contact_slope import invols_from_curves
 from pipeline.forces.curve import ForceCurve
 from pipeline.forces.errors import CalibrationError, ForceCurveError
+from pipeline.forces.invols import PER_INTERVAL_METHODS
 from pipeline.forces.reference_lever import reference_lever_k
 from pipeline.forces.settings import (CANTILEVER_DEFAULTS, READER_DEFAULTS, REFERENCE_DEFAULTS, THERMAL_DEFAULTS,
                                       resolve_paths, with_defaults)
@@ -104,9 +109,10 @@ def calibrate(cantilever: dict | None, curves: list[ForceCurve], reader: dict | 
     details: dict = {}
     x, u = {}, {}
 
-    # --- InvOLS ---------------------------------------------------------
+    # --- InvOLS at tip level (the calibration session; per-interval values: invols.py) -----
     im = cant["deflection_sensitivity_method"]
-    if im == "auto":
+    per_interval = im in PER_INTERVAL_METHODS
+    if per_interval:
         im = "given" if "deflection_sensitivity" in cant else "hard_sample" if "hard_sample_curves" in cant else "file"
     if im == "given":
         if "deflection_sensitivity" not in cant:
@@ -126,6 +132,9 @@ def calibrate(cantilever: dict | None, curves: list[ForceCurve], reader: dict | 
             if all(c.defl_units == "m" for c in curves):
                 x["invols"], u["invols"] = np.nan, 0.0
                 i_src = "not used: deflection recorded in metres by the instrument"
+            elif per_interval:
+                x["invols"], u["invols"] = np.nan, 0.0
+                i_src = "none at tip level (InvOLS per interval)"
             else:
                 raise CalibrationError("no deflection sensitivity (InvOLS): the curve files carry none; give cantilever.deflection_sensitivity or cantilever.hard_sample_curves")
         else:
@@ -179,6 +188,9 @@ def calibrate(cantilever: dict | None, curves: list[ForceCurve], reader: dict | 
 def _reference_setup(cant, reader, x, u, details):
     if "reference_lever" not in cant:
         raise CalibrationError("spring_constant_method 'reference_lever' needs cantilever.reference_lever")
+    if not np.isfinite(x["invols"]):
+        raise CalibrationError("the reference-lever spring constant needs the InvOLS of the calibration session (the "
+                               "test lever on a hard sample): give cantilever.hard_sample_curves or deflection_sensitivity")
     ref = with_defaults(cant["reference_lever"], REFERENCE_DEFAULTS)
     ref.setdefault("base_dir", cant.get("base_dir", "."))
     if "spring_constant" not in ref:

@@ -23,11 +23,15 @@ READER_DEFAULTS = {
     "outlier_rule": "esd",  # esd: generalized ESD (Rosner 1983) | modified_z (Iglewicz & Hoaglin)
     "outlier_alpha": 0.01,  # significance of the ESD test (a curve is dropped only on strong evidence)
     "outlier_z": 3.5,  # modified z-score threshold (rule modified_z)
+    "min_curves": 2,  # fewest accepted curves an interval needs (1: no scatter can be estimated)
 }
 
 CANTILEVER_DEFAULTS = {
     "spring_constant_method": "auto",  # auto | given | file | reference_lever | thermal
-    "deflection_sensitivity_method": "auto",  # auto | given | hard_sample | file
+    "deflection_sensitivity_method": "auto",  # auto | contact | interval_curves | interval_given | given | hard_sample | file
+    "contact_fallback": "fail",  # fail | tip: an interval whose own curves give no contact slope
+    "invols_check_sigma": 3.0,  # report a contact slope that disagrees with the InvOLS in use beyond this
+    "contact_invols_floor": 0.005,  # relative systematic uncertainty of a contact-slope InvOLS
     "contact_fit_range": [0.2, 0.8],
     "contact_segment": "approach",
 }

@@ -10,15 +10,24 @@ HDF5 layout (every dataset has ``units``):
              n_curves_rejected, n_outliers, delta_V_mean, delta_m_mean,
              u_F_p_calibration, u_F_p_calibration_rel, u_F_p_total;
              ``calibration`` is a soft link to /calibration
-/calibration/ k, u_k, invols, u_invols, factor (k*InvOLS), u_factor, u_factor_rel,
-             corr_k_invols, k_method, invols_method, k_source, invols_source and a
-             subgroup per method used (hard_sample, reference_curves, reference_lever, thermal)
+/calibration/ k, u_k, invols, u_invols (this interval's), factor (k*InvOLS), u_factor,
+             u_factor_rel, u_k_rel, u_invols_rel, corr_k_invols, k_method, invols_method,
+             k_source, invols_source, invols_shared (one InvOLS for the whole tip), invols_tip,
+             u_invols_tip (the calibration session's, NaN if none), the contact-slope check
+             (invols_contact, u_invols_contact, n_invols_contact, invols_check_z, invols_check)
+             and a subgroup per method used (hard_sample, reference_curves, reference_lever, thermal)
+/curves/     also invols_contact, u_invols_contact_fit, invols_contact_reason (the per-curve
+             contact slope measured on every curve, whatever the InvOLS source)
 
-Statistical (scatter, F_p_sem) and calibration (u_F_p_calibration = F_p_mean *
-u(k InvOLS)/(k InvOLS), systematic for all intervals of a tip) parts are separate.
+Statistical (scatter, F_p_sem) and calibration parts are separate: k is common to all
+intervals of a tip; InvOLS is the interval's own (``pipeline.forces.invols``: the chip is
+remounted after every TEM session) unless ``invols_shared``.  Warnings (an InvOLS that
+disagrees with the contact slope, curves that give no contact slope, a fallback) are in the
+root attribute ``warnings`` and in the log.
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import h5py
@@ -27,6 +36,7 @@ import numpy as np
 from pipeline.forces.calibration import Calibration, calibrate
 from pipeline.forces.errors import CalibrationError, ForceCurveError, ForcesStageError
 from pipeline.forces.figures import plot_retracts
+from pipeline.forces.invols import IntervalInvols, resolve_interval_invols
 from pipeline.forces.pulloff import detect_pulloff
 from pipeline.forces.reading import read_curves
 from pipeline.forces.settings import CANTILEVER_DEFAULTS, READER_DEFAULTS, resolve_paths, with_defaults
@@ -38,6 +48,7 @@ OUTLIER_RULES = {
     "modified_z": "modified z-score 0.6745 |x - median| / MAD > outlier_z over accepted curves (none flagged if n < 3 or MAD = 0)",
 }
 MEAN_RULE = "mean, std (ddof=1) and sem over accepted non-outlier curves"
+log = logging.getLogger(__name__)
 
 
 def _expand(paths, cfg):
@@ -48,13 +59,16 @@ def _expand(paths, cfg):
     return out
 
 
-def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, tip="", interval="") -> None:
+def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, tip="", interval="",
+               interval_cfg: dict | None = None) -> None:
     """Analyse one interval's force curves; write ``out_h5`` and ``out_png`` atomically.
 
     ``cantilever``/``reader``: the SI-converted ``cantilever:``/``force_curves:`` sections
-    (paths relative to their ``base_dir``).  Unreadable or unanalysable curves are
-    rejected with a reason; raises :class:`ForcesStageError` (no output) when none is
-    accepted, :class:`CalibrationError` when k/InvOLS cannot be resolved.
+    (paths relative to their ``base_dir``); ``interval_cfg`` the interval's entry of the tip
+    YAML (its own deflection_sensitivity / calibration_curves, if any).  Unreadable or
+    unanalysable curves are rejected with a reason; raises :class:`ForcesStageError` (no
+    output) when fewer than ``min_curves`` are accepted, :class:`CalibrationError` when k or
+    the interval's InvOLS cannot be resolved.
     """
     reader = with_defaults(reader, READER_DEFAULTS)
     cant = with_defaults(cantilever, CANTILEVER_DEFAULTS)
@@ -76,18 +90,29 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
     if not curves:
         raise ForcesStageError(_all_rejected(label, rows))
     cal = calibrate(cant, curves, reader)
+    inv = resolve_interval_invols(cant, interval_cfg, curves, cal, reader=reader, label=label)
+    warnings = [f"{label}: {w}" for w in inv.warnings] + ([f"{label}: {inv.check}"] if inv.check else [])
+    for w in warnings:
+        log.warning(w)
 
     for r in rows:
         c = r["curve"]
         if c is None:
             continue
         try:
-            r["po"] = _pulloff(c, reader, cal)
+            r["po"] = _pulloff(c, reader, inv.value)
         except ForceCurveError as exc:
             r["reason"] = exc.reason
     accepted = np.array([not r["reason"] for r in rows])
     if not accepted.any():
         raise ForcesStageError(_all_rejected(label, rows))
+    if accepted.sum() < int(reader["min_curves"]):
+        used_files = ", ".join(r["file"] for r, a in zip(rows, accepted) if a)
+        raise ForcesStageError(
+            f"{label}: only {int(accepted.sum())} usable force curve(s) ({used_files}) of {len(rows)}; the pull-off "
+            f"scatter cannot be estimated from fewer than {int(reader['min_curves'])}: add curves, or set "
+            "force_curves.min_curves: 1 to accept it (no statistical uncertainty of F_p), no output written")
+    ci = _contact_columns(inv, rows)
 
     n = len(rows)
     col = {k: np.full(n, np.nan) for k in ("delta_V", "delta_m", "u_delta_m", "delta_min_m", "off", "slope", "noise", "nb", "zpo")}
@@ -101,10 +126,11 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
     u_F_stat = cal.k * col["u_delta_m"]
     st = interval_stats(F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"])
     used = accepted & ~st.outlier
-    u_cal_rel = cal.u_factor_rel if np.isfinite(cal.invols) else cal.u_k_rel
+    u_k_rel, u_inv_rel, u_cal_rel, factor, u_factor, corr = _calibration_parts(cal, inv)
 
     with atomic_h5(out_h5, stage="forces", tip=tip, interval=interval, outlier_rule=OUTLIER_RULES[reader["outlier_rule"]], mean_rule=MEAN_RULE,
-                   reader_config={k: v for k, v in reader.items()}, cantilever_config={k: v for k, v in cant.items()}) as f:
+                   reader_config={k: v for k, v in reader.items()}, cantilever_config={k: v for k, v in cant.items()},
+                   warnings=warnings) as f:
         g = create_group(f, "curves", "NXcollection")
         write_dataset(g, "file", [r["file"] for r in rows], "1", "curve file (#i: i-th curve of a map)")
         write_dataset(g, "accepted", accepted, "1", "curve passed reading and pull-off detection")
@@ -118,7 +144,7 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
         write_dataset(g, "delta_min_m", col["delta_min_m"], "m", "raw minimum of the baseline-corrected retract (cross-check)")
         write_dataset(g, "F_p", F_p, "N", "pull-off force k * Delta")
         write_dataset(g, "u_F_p_stat", u_F_stat, "N", "statistical uncertainty of F_p of the curve (calibration excluded)")
-        bu = "V" if np.isfinite(cal.invols) else "m"
+        bu = "V" if np.isfinite(inv.value) else "m"
         write_dataset(g, "baseline_offset", col["off"], bu, "baseline offset at z = 0 (retract free part)")
         write_dataset(g, "baseline_slope", col["slope"], f"{bu}/m", "baseline tilt per m of piezo extension")
         write_dataset(g, "baseline_noise", col["noise"], bu, "rms of the baseline residuals")
@@ -126,19 +152,33 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
         write_dataset(g, "z_pulloff", col["zpo"], "m", "piezo extension at the jump-off")
         write_dataset(g, "spring_constant_file", [_nan(r, "spring_constant") for r in rows], "N/m", "k stored in the file (NaN if none)")
         write_dataset(g, "invols_file", [_nan(r, "invols") for r in rows], "m/V", "InvOLS stored in the file (NaN if none)")
+        write_dataset(g, "invols_contact", ci["invols"], "m/V", "InvOLS from this curve's contact slope (NaN: see the reason)")
+        write_dataset(g, "u_invols_contact_fit", ci["u"], "m/V", "fit standard error of that InvOLS")
+        write_dataset(g, "invols_contact_reason", ci["reason"], "1", "why the curve gives no contact slope ('' if it does)")
 
         c = create_group(f, "calibration", "NXcollection")
         for name, val, unit, desc in (
                 ("k", cal.k, "N/m", "spring constant used"), ("u_k", cal.u_k, "N/m", "1-sigma uncertainty of k"),
-                ("invols", cal.invols, "m/V", "deflection sensitivity used (NaN: deflection recorded in m)"),
-                ("u_invols", cal.u_invols, "m/V", "1-sigma uncertainty of InvOLS"),
-                ("factor", cal.factor, "N/V", "k * InvOLS: F_p = factor * delta_V"),
-                ("u_factor", cal.u_factor, "N/V", "1-sigma uncertainty of k * InvOLS (correlations included)"),
-                ("u_factor_rel", u_cal_rel, "1", "relative calibration uncertainty of F_p (systematic)"),
-                ("corr_k_invols", cal.corr_k_invols, "1", "correlation coefficient of k and InvOLS"),
+                ("invols", inv.value, "m/V", "deflection sensitivity used for this interval (NaN: deflection recorded in m)"),
+                ("u_invols", inv.u, "m/V", "1-sigma uncertainty of InvOLS"),
+                ("factor", factor, "N/V", "k * InvOLS: F_p = factor * delta_V"),
+                ("u_factor", u_factor, "N/V", "1-sigma uncertainty of k * InvOLS (correlations included)"),
+                ("u_factor_rel", u_cal_rel, "1", "relative calibration uncertainty of F_p"),
+                ("u_k_rel", u_k_rel, "1", "relative uncertainty of k (common to all intervals of the tip)"),
+                ("u_invols_rel", u_inv_rel, "1", "relative uncertainty of this interval's InvOLS (its own unless invols_shared)"),
+                ("corr_k_invols", corr, "1", "correlation coefficient of k and InvOLS"),
                 ("k_method", cal.k_method, "1", "given | file | reference_lever | thermal"),
-                ("invols_method", cal.invols_method, "1", "given | hard_sample | file"),
-                ("k_source", cal.k_source, "1", "where k came from"), ("invols_source", cal.invols_source, "1", "where InvOLS came from")):
+                ("invols_method", inv.method, "1", "contact | interval_curves | interval_given | given | hard_sample | file | none"),
+                ("invols_shared", inv.shared, "1", "one InvOLS for the whole tip (its error common to all intervals)"),
+                ("invols_tip", cal.invols, "m/V", "tip-level InvOLS of the calibration session (NaN if none)"),
+                ("u_invols_tip", cal.u_invols, "m/V", "its 1-sigma uncertainty"),
+                ("invols_contact", inv.contact.mean if inv.contact else np.nan, "m/V",
+                 "InvOLS from the contact slopes of this interval's own curves (mean)"),
+                ("u_invols_contact", inv.contact.u if inv.contact else np.nan, "m/V", "its standard error with the systematic floor"),
+                ("n_invols_contact", inv.contact.n if inv.contact else 0, "1", "curves that gave a contact slope"),
+                ("invols_check_z", inv.check_z, "1", "(InvOLS in use - contact) / combined uncertainty (NaN: not checked)"),
+                ("invols_check", inv.check, "1", "'' or what disagrees (a forgotten remount)"),
+                ("k_source", cal.k_source, "1", "where k came from"), ("invols_source", inv.source, "1", "where InvOLS came from")):
             write_dataset(c, name, val, unit, desc)
         for gname, items in cal.details.items():
             sub = create_group(c, gname, "NXcollection")
@@ -155,13 +195,13 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
                 ("n_outliers", int(st.outlier.sum()), "1", "accepted curves flagged as outliers"),
                 ("delta_V_mean", float(np.mean(col["delta_V"][used])), "V", "mean Delta of used curves (V)"),
                 ("delta_m_mean", float(np.mean(col["delta_m"][used])), "m", "mean Delta of used curves (m)"),
-                ("u_F_p_calibration", st.mean * u_cal_rel, "N", "systematic calibration part (k, InvOLS), common to all intervals of the tip"),
+                ("u_F_p_calibration", st.mean * u_cal_rel, "N", "calibration part (k common to the tip; InvOLS the interval's own unless shared)"),
                 ("u_F_p_calibration_rel", u_cal_rel, "1", "relative calibration uncertainty"),
                 ("u_F_p_total", float(np.hypot(np.nan_to_num(st.sem), st.mean * u_cal_rel)), "N", "sqrt(sem^2 + calibration^2)")):
             write_dataset(iv, name, val, unit, desc)
         iv["calibration"] = h5py.SoftLink("/calibration")
 
-        plot_retracts(out_png, [_plot_item(r, cal, st.outlier[i]) for i, r in enumerate(rows) if r["curve"] is not None],
+        plot_retracts(out_png, [_plot_item(r, cal.k, inv.value, st.outlier[i]) for i, r in enumerate(rows) if r["curve"] is not None],
                       n_total=n, title=f"{tip} {interval}: F_p = {st.mean * 1e9:.3g} +- {np.nan_to_num(st.sem) * 1e9:.2g} nN (n={st.n_used})")
 
 
@@ -171,17 +211,48 @@ def _nan(row, attr):
     return np.nan if v is None else v
 
 
-def _volts_or_m(c, cal: Calibration):
+def _calibration_parts(cal: Calibration, inv: IntervalInvols):
+    """(u_k_rel, u_invols_rel, u_factor_rel, factor, u_factor, corr) of F_p = k InvOLS delta_V.
+
+    A tip-level InvOLS keeps its correlation with k (the reference-lever k uses the same
+    hard-sample InvOLS); an interval's own InvOLS is independent of k."""
+    u_k_rel = cal.u_k_rel
+    if not np.isfinite(inv.value):
+        return u_k_rel, np.nan, u_k_rel, np.nan, np.nan, np.nan
+    u_inv_rel = inv.u / inv.value
+    factor = cal.k * inv.value
+    if inv.shared and np.isfinite(cal.factor):
+        return u_k_rel, u_inv_rel, cal.u_factor_rel, cal.factor, cal.u_factor, cal.corr_k_invols
+    u_rel = float(np.hypot(u_k_rel, u_inv_rel))
+    return u_k_rel, u_inv_rel, u_rel, factor, factor * u_rel, 0.0
+
+
+def _contact_columns(inv: IntervalInvols, rows) -> dict:
+    """Per-row contact-slope InvOLS (rows without a curve: NaN, their read error)."""
+    n = len(rows)
+    out = {"invols": np.full(n, np.nan), "u": np.full(n, np.nan), "reason": [r["reason"] or "" for r in rows]}
+    if inv.contact is None:
+        return out
+    by_file = {}
+    for f, v, u, why in zip(inv.contact.files, inv.contact.invols, inv.contact.u_fit, inv.contact.reason):
+        by_file.setdefault(f, []).append((v, u, why))
+    for i, r in enumerate(rows):
+        if r["curve"] is not None and by_file.get(r["file"]):
+            out["invols"][i], out["u"][i], out["reason"][i] = by_file[r["file"]].pop(0)
+    return out
+
+
+def _volts_or_m(c, invols: float):
     """(deflection of the retract, to-metres factor, is_volts)."""
     if c.defl_units == "V" or c.invols is not None:
-        if not np.isfinite(cal.invols):
+        if not np.isfinite(invols):
             raise CalibrationError(f"{c.path}: curve in volts but no InvOLS available")
-        return c.deflection_volts("retract"), cal.invols, True
+        return c.deflection_volts("retract"), invols, True
     return c.defl_retract, 1.0, False
 
 
-def _pulloff(c, reader, cal: Calibration) -> dict:
-    d, to_m, volts = _volts_or_m(c, cal)
+def _pulloff(c, reader, invols: float) -> dict:
+    d, to_m, volts = _volts_or_m(c, invols)
     po = detect_pulloff(c.z_retract, d, path=c.path, baseline_gap=reader["baseline_gap"],
                         min_baseline_points=int(reader["min_baseline_points"]), method=reader["pulloff_method"],
                         fit_points=int(reader["pulloff_fit_points"]), min_snr=float(reader["min_pulloff_snr"]))
@@ -190,13 +261,13 @@ def _pulloff(c, reader, cal: Calibration) -> dict:
             "noise": po.baseline.rms, "nb": po.n_baseline, "zpo": po.z_pulloff, "_po": po}
 
 
-def _plot_item(r, cal, outlier):
+def _plot_item(r, k, invols, outlier):
     c = r["curve"]
     try:
-        d, to_m, _ = _volts_or_m(c, cal)
+        d, to_m, _ = _volts_or_m(c, invols)
     except CalibrationError:
         return {"x": np.zeros(0), "force": np.zeros(0), "baseline": None, "x_po": 0, "F_po": 0, "accepted": False, "outlier": False}
-    fac = cal.k * to_m
+    fac = k * to_m
     po = r.get("_po") or (r.get("po") or {}).get("_po")
     if po is None or r["reason"]:
         x = c.z_retract.max() - c.z_retract

@@ -4,7 +4,8 @@ For each tip: a series of intervals whose apex goes from a paraboloid (n = 2) to
 flattened power law (Eq. 2, z = r^n / (n S^(n-2) R^(n-1))), one side-view TEM image
 per interval, and 5-10 approach/retract force curves per interval whose pull-off
 forces follow the full M-D-n model (Zheng & Yu; paper Eqs. 4-11) for a chosen
-W_A and h.  The ground truth is written beside the data (``truth.yaml``), and a
+W_A and h.  The deflection sensitivity changes at every remount (``invols_drift``, 5 %
+by default), as it does in a TEM wear test; k does not.  The ground truth is written beside the data (``truth.yaml``), and a
 tip YAML for ``config/tips/`` that points at it.
 
 Everything is deterministic for a given seed.
@@ -40,7 +41,7 @@ class TipTruth:
     u_E_star: float  # Pa, 1 sigma stated in the config
     k: float  # N/m, true spring constant
     u_k: float  # N/m stated calibration uncertainty
-    invols: float  # m/V, true deflection sensitivity
+    invols: float  # m/V, deflection sensitivity at the calibration session (hard sample, reference lever)
     u_invols: float
     pixel_size: float  # m
     coating: float  # m, lighter outer layer thickness (DLC / native oxide)
@@ -49,6 +50,9 @@ class TipTruth:
     calibration: str = "given"  # "given" (k, InvOLS in the YAML) or "curves" (hard sample + reference lever)
     k_ref: float = 0.0  # N/m, reference lever for calibration == "curves"
     u_k_ref: float = 0.0
+    # relative SD of the InvOLS change at every remount (the chip leaves the AFM for the TEM after
+    # each interval; the laser spot moves): each interval's InvOLS = invols (1 + invols_drift N(0,1))
+    invols_drift: float = 0.05
     rotation_deg: float = 3.0
     blur_sigma_px: float = 1.2
     edge_snr: float = 15.0
@@ -92,6 +96,13 @@ def sample_tips() -> list[TipTruth]:
     ]
 
 
+def interval_invols(t: TipTruth) -> np.ndarray:
+    """True InvOLS of every interval (m/V): the calibration value with a remount drift, from a
+    random stream of its own (the images and curves of a seed do not change with it)."""
+    drift = np.random.default_rng([t.seed, 0x1A5E]).standard_normal(len(t.n))
+    return t.invols * (1.0 + t.invols_drift * drift)
+
+
 def true_pulloff_forces(t: TipTruth) -> np.ndarray:
     """F_p per interval from the full M-D-n model (exact solver)  [N]."""
     from pipeline.mechanics import pulloff_force
@@ -111,6 +122,7 @@ def generate_tip(t: TipTruth, out_dir: Path) -> dict:
     out_dir = Path(out_dir)
     rng = np.random.default_rng(t.seed)
     F_true = true_pulloff_forces(t)
+    invols = interval_invols(t)
     truth = {
         "description": t.description,
         "generator": "pipeline.synth.wear_test (python -m pipeline make-samples)",
@@ -121,7 +133,8 @@ def generate_tip(t: TipTruth, out_dir: Path) -> dict:
         "R_m": t.R,
         "S": t.S,
         "spring_constant_N_per_m": t.k,
-        "deflection_sensitivity_m_per_V": t.invols,
+        "deflection_sensitivity_m_per_V": t.invols,  # calibration session (hard sample, reference lever)
+        "invols_drift": t.invols_drift,
         "pixel_size_m": t.pixel_size,
         "coating_thickness_m": t.coating,
         "intervals": [],
@@ -140,13 +153,14 @@ def generate_tip(t: TipTruth, out_dir: Path) -> dict:
         F_curves = F * (1.0 + t.fp_scatter * rng.standard_normal(t.curves_per_interval))
         for j, Fj in enumerate(F_curves):
             curve = make_force_curve(
-                F_p=float(Fj), k=t.k, invols=t.invols, seed=int(rng.integers(2**31)),
+                F_p=float(Fj), k=t.k, invols=float(invols[i]), seed=int(rng.integers(2**31)),
                 offset_V=float(rng.normal(0.0, 0.05)), tilt=float(rng.normal(0.0, 2e5)), noise=0.1e-9,
             )
             write_curve_csv(curve_dir / f"curve_{j + 1:02d}.csv", curve)
         truth["intervals"].append({
             "name": name, "scans": scans, "n": n, "Q_SI": Q,
             "F_p_true_N": float(F), "F_p_curves_N": [float(x) for x in F_curves],
+            "deflection_sensitivity_m_per_V": float(invols[i]),
             "image": {k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in img_truth.items()
                       if isinstance(v, (int, float, str, np.floating))},
         })
@@ -195,9 +209,10 @@ def tip_config(t: TipTruth, data_dir: str) -> dict:
 
 
 def _cantilever_config(t: TipTruth) -> dict:
+    """k per tip; InvOLS per interval from its own curves' contact slopes (the default, ``auto``):
+    the tip YAML gives only the calibration session (hard-sample curves for the reference lever)."""
     if t.calibration == "curves":
         return {
-            "deflection_sensitivity_method": "hard_sample",
             "hard_sample_curves": "calibration/hard_sample",
             "spring_constant_method": "reference_lever",
             "reference_lever": {
@@ -209,8 +224,6 @@ def _cantilever_config(t: TipTruth) -> dict:
     return {
         "spring_constant": f"{t.k:g} N/m",
         "spring_constant_uncertainty": f"{t.u_k:g} N/m",
-        "deflection_sensitivity": f"{t.invols * 1e9:g} nm/V",
-        "deflection_sensitivity_uncertainty": f"{t.u_invols * 1e9:g} nm/V",
     }
 
 
@@ -225,6 +238,8 @@ def write_sample_bundle(out="data_samples", config_dir="config/tips", tips=None)
             f"# {t.description}.\n"
             f"# Generated by `python -m pipeline make-samples` (seeded); ground truth in {out / t.name / 'truth.yaml'}.\n"
             "# Every dimensional value carries its unit; see README 'Configuration'.\n"
+            "# k is one per tip; InvOLS is measured for every interval from the contact slope of its own\n"
+            "# curves (the default: the chip is remounted for every TEM session).\n"
         )
         (config_dir / f"{t.name}.yaml").write_text(header + yaml.safe_dump(cfg, sort_keys=False))
 

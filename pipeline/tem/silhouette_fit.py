@@ -34,7 +34,7 @@ Coating: "auto" fits the single-layer model, then searches the coated one
 (``_coating_search``: starts on a grid of thicknesses that the single-layer blur
 leaves room for, the two best taken a few LM steps, the better one converged) and
 keeps it only if it lowers chi^2 by more than ``COAT_DCHI2`` (likelihood ratio, 2
-extra parameters) with physical values (0.1 < k_o/k_c < 0.8, thickness >= 1 px).
+extra parameters) with physical values (0.1 < k_o/k_c < 0.8, thickness >= MIN_COAT_PX).
 A layered fit within +-``COAT_DCHI2`` of the single layer is neither found nor
 excluded (thin light oxide at coarse pixels, heavy blur or low SNR: the image cannot
 say whether it is there): the single-layer edge is kept, flagged "coating
@@ -89,6 +89,10 @@ BLUR_PER_COAT = 0.28
 # t <= 1.9 sigma_single with no blur at all; layers of weaker contrast widen the blur less
 # (ratio 0.5: t/sigma_single <= 1.7, ratio 0.7: <= 2.4 measured), 0.8 is not accepted anyway
 COAT_PER_BLUR = 2.6
+# thinnest layer that counts as one (px, the smallest start of the search): with the coated model
+# continuous in the thickness, a 1.1 px layer of contrast 0.45 under a 1 px blur absorbed the
+# single-layer model's own error on a noise-free uncoated flat face (chi^2 -19, edge 0.1 nm out)
+MIN_COAT_PX = 1.5
 COAT_START_ITERS = 3  # full LM iterations from each of the two best starts
 COAT_EXTRA_STARTS = 3  # further starts tried when the decision is borderline
 POLISH_MIN_DCHI2 = 1.0  # an exact Gauss-Newton step is taken if chi^2 falls by more than this x K
@@ -805,7 +809,7 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
     a longer chord than the flanks).  So: every thickness of ``COAT_GRID_PX`` that the
     single-layer blur leaves room for (t <= COAT_PER_BLUR sigma_single) is evaluated once
     from ``_coated_start``, the two best get ``COAT_START_ITERS`` full LM iterations and the
-    better one is converged.  Only PHYSICAL fits (0.1 < k_o/k_c < 0.8, thickness >= 1 px)
+    better one is converged.  Only PHYSICAL fits (0.1 < k_o/k_c < 0.8, thickness >= MIN_COAT_PX)
     count: a coated fit with no contrast between the layers is the single layer fitting
     noise.  When the decision is borderline, ``COAT_EXTRA_STARTS`` more starts are tried.
     The decision compares LM solutions (``_Fitter.polish`` notes that LM stops short of the
@@ -825,7 +829,7 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
 
     def physical(st):
         _, _, ko, kc, coat = f2.unpack(st.v)
-        return bool(0.1 * kc < ko < 0.8 * kc and coat >= 1.0)
+        return bool(0.1 * kc < ko < 0.8 * kc and coat >= MIN_COAT_PX)
 
     starts = [_coated_start(f1, st1, lim2, t) for t in cands]
     order = np.argsort([f2.evaluate(v).cost for v in starts])

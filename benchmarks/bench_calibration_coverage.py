@@ -1,0 +1,49 @@
+"""Per-interval InvOLS (issue 15): error and coverage of h and W_A over many synthetic wear tests.
+
+Each case (``pipeline.synth.calibration_study``): 4-6 intervals, InvOLS drifting 3-10 % between
+intervals (chip remounted for every TEM session), 8 curves per interval with 2-5 % scatter, a
+tip YAML with k but no InvOLS; stages 3-5 run as in the workflow (Dugdale law, M-D-n where the
+adhesion map needs it).  Kinds: rigid, elastic (transition regime), wrong_reference (the
+reference's forces 10 % off) and hidden_bias (one worn interval's forces 10 % off).
+
+Prints per kind: median and worst |h error|, |W_A error|, worst interval F_p error, coverage of
+the 95 % intervals of h and W_A, how often the intervals were widened (Birge ratio > 1), and the
+run time.  Usage: python benchmarks/bench_calibration_coverage.py [seeds per kind, default 40]
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from pipeline.synth.calibration_study import draw_case, run_case
+
+KINDS = ("rigid", "elastic", "wrong_reference", "hidden_bias")
+
+
+def main(n_seeds=40):
+    rows = {}
+    for kind in KINDS:
+        t0 = time.perf_counter()
+        rows[kind] = [run_case(draw_case(1000 + s, kind)) for s in range(n_seeds)]
+        rows[kind + "_t"] = time.perf_counter() - t0
+    print(f"{'kind':16s} {'cases':>5s} {'med|dh|':>8s} {'max|dh|':>8s} {'med|dW|':>8s} {'max|dW|':>8s} "
+          f"{'max|dF|':>8s} {'cov h':>6s} {'cov W':>6s} {'widened':>8s} {'med hw':>7s} {'L/Lb>1':>6s} {'s/case':>7s}")
+    for kind in KINDS:
+        r = [x for x in rows[kind] if x["status"] == "ok"]
+        dh = np.abs([x["h_err"] for x in r])
+        dw = np.abs([x["W_err"] for x in r])
+        print(f"{kind:16s} {len(r):5d} {100 * np.median(dh):7.2f}% {100 * dh.max():7.2f}% {100 * np.median(dw):7.2f}% "
+              f"{100 * dw.max():7.2f}% {100 * max(x['fp_err_max'] for x in r):7.2f}% "
+              f"{100 * np.mean([x['h_covered'] for x in r]):5.0f}% {100 * np.mean([x['W_covered'] for x in r]):5.0f}% "
+              f"{100 * np.mean([x['birge'] > 1 for x in r]):7.0f}% {100 * np.nanmedian([x['h_rel_halfwidth'] for x in r]):6.1f}% "
+              f"{np.mean([x['lambda_over_boundary'] > 1 for x in r]):6.2f} {rows[kind + '_t'] / len(rows[kind]):7.2f}")
+        missed = [x for x in r if not x["h_covered"]]
+        for x in missed[:5]:
+            print(f"    missed: seed {x['seed']} dh {100 * x['h_err']:+.1f}% dW {100 * x['W_err']:+.1f}% chi2 {x['chi2']:.2f}/{x['dof']} "
+                  f"birge {x['birge']:.2f} half-width {100 * x['h_rel_halfwidth']:.1f}%")
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 40)
