@@ -77,12 +77,14 @@ def true_forces(case: Case) -> np.ndarray:
     return np.asarray(pulloff_force(n, q, case.E_star, case.W_A, case.h, model="mdn", exact=True), float)
 
 
-def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_grid=None) -> dict:
+def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_grid=None, oracle_invols=False) -> dict:
     """Write the case's curves and fits, run stages 3-5 (Dugdale law), compare with the truth.
 
     ``cantilever``: the tip's ``cantilever:`` section (SI); default k with its uncertainty and
-    no InvOLS (per interval, from the contact slopes).  Returns a dict of the errors and the
-    coverage of the 95 % intervals."""
+    no InvOLS (per interval, from the contact slopes).  ``oracle_invols``: every interval is
+    given its true InvOLS with no uncertainty instead (what the data would give with a perfect
+    calibration: the errors left are the shape fits' and the pull-off scatter's).  Returns a
+    dict of the errors and the coverage of the 95 % intervals."""
     from pipeline.adhesion_range import analyse_law
     from pipeline.forces.stage import run_forces
     from pipeline.inversion import load_forces, load_inversion, run_inversion, write_synthetic_fit
@@ -106,8 +108,9 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
                                  setpoint_deflection=max(20e-9, Fj / case.k / 3.0))
             paths.append(write_curve_csv(root / "curves" / nm / f"c{j}.csv", c))
         forces[nm] = str(root / "forces" / f"{nm}.h5")
+        icfg = {"deflection_sensitivity": float(case.invols[i]), "deflection_sensitivity_uncertainty": 0.0} if oracle_invols else {}
         run_forces(paths, forces[nm], root / "forces" / f"{nm}.png", cantilever=cant, reader={}, tip=f"case{case.seed}",
-                   interval=nm, interval_cfg={})
+                   interval=nm, interval_cfg=icfg)
         fp_err.append(load_forces(forces[nm])["F_p_mean"] / F_curves.mean() - 1.0)
         n_obs = n + case.sigma_n * rng.standard_normal()
         lnr_obs = np.log(case.R) + case.sigma_lnR * rng.standard_normal()
