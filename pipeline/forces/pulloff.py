@@ -9,7 +9,9 @@
 3. ``method='fit'`` (default): a line through the last ``fit_points`` contact points
    before the jump, evaluated half-way to the next sample (the instability lies
    between them; unbiased over the sampling phase) -- also removes the bias of
-   picking the most negative noise sample.  If the jump is not sharp (the rise over
+   picking the most negative noise sample.  Where the height record is noisy (sensor noise,
+   piezo jitter) the line is fitted against the sample index instead (errors in the
+   abscissa flatten a line; see ``_contact_extrapolation``).  If the jump is not sharp (the rise over
    the next 3 samples is < 50 % of Delta: gradual detachment, soft samples) the
    minimum of a 5-point running mean is used instead.
    ``method='min'``: the raw minimum.
@@ -65,6 +67,58 @@ def _baseline(z, d, mask, min_points, path, what) -> Line:
     return fit_line(z[mask], d[mask])
 
 
+def _line_at(x, y, x_eval, line):
+    """Value of ``line`` (fitted to x, y) at ``x_eval`` and its standard error."""
+    sxx = max(float(np.sum((x - x.mean()) ** 2)), 1e-300)
+    lever = 1.0 / x.size + (x_eval - x.mean()) ** 2 / sxx
+    return float(line(x_eval)), line.rms * np.sqrt(lever)
+
+
+def _last_contact(dc, i_j, fit_points, rms):
+    """Move the jump-off past samples that look free but are followed, within ``fit_points``
+    samples, by samples that can only be in contact (deeper than half the adhesive dip and than
+    4 x the baseline noise): a jittering piezo moves the lever back and forth along its contact
+    line, so its deflection can rise and fall again before the lever lets go."""
+    for _ in range(100):
+        thr = -max(0.5 * -dc[i_j], 4.0 * rms)
+        hi = min(dc.size - 1, i_j + 1 + fit_points)
+        later = np.flatnonzero(dc[i_j + 1 : hi] < thr)
+        if later.size == 0:
+            return i_j
+        i_j = i_j + 1 + int(later[-1])
+    return i_j
+
+
+def _contact_extrapolation(z, dc, i_j, fit_points, robust=False):
+    """(Delta, u_fit, step) from a line through the last ``fit_points`` contact points,
+    evaluated half-way between the last contact sample and the first free one.
+
+    The regressor is the recorded height, or the sample index (time) where the height record
+    is noisier than the deflection it drives (height-sensor noise: a line fitted against a
+    noisy abscissa is flattened towards the window's mean -- errors in variables -- and reads
+    Delta up to ~20 % low).  The piezo moves at a steady rate in time, so the index is an
+    abscissa without that error; it is used when its residuals are clearly the smaller
+    (rms < 0.8 x), so clean ramps keep the height fit.  The lever stayed in contact at every
+    contact sample, so the instability lies between the lowest of their heights and the first
+    free sample's (the two neighbours on a clean ramp); ``step`` is the change of the line over
+    that bracket.  ``robust``: one 3-sigma rejection pass (free samples interleaved by jitter)."""
+    lo = max(0, i_j + 1 - fit_points)
+    zc, yc, ic = z[lo : i_j + 1], dc[lo : i_j + 1], np.arange(lo, i_j + 1, dtype=float)
+    line_z, line_i = fit_line(zc, yc, clip=np.inf), fit_line(ic, yc, clip=np.inf)
+    by_index = line_i.rms < 0.8 * line_z.rms
+    x = ic if by_index else zc
+    if robust:
+        keep = np.abs(yc - (line_i if by_index else line_z)(x)) <= 3.0 * (line_i if by_index else line_z).rms
+        x, yc, zc = x[keep], yc[keep], zc[keep]
+    line = fit_line(x, yc, clip=np.inf)
+    if by_index:
+        v, u = _line_at(x, yc, i_j + 0.5, line)
+        return -v, u, abs(line.slope)
+    z_last = float(zc.min()) if robust else float(z[i_j])
+    v, u = _line_at(x, yc, 0.5 * (z_last + z[i_j + 1]), line)
+    return -v, u, abs(line.slope) * abs(z_last - float(z[i_j + 1]))
+
+
 def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, method="fit",
                    fit_points=20, min_snr=5.0) -> PullOff:
     """Find Delta on a retract segment (``z`` decreasing, m; ``d`` deflection, V or m)."""
@@ -81,7 +135,6 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
     dc = d - line(z)
     i_j = _jump_index(dc, path)
     delta_min = float(-dc[: i_j + 1].min())
-    dz = float(abs(z[i_j - 1] - z[i_j])) if i_j > 0 else 0.0
     step = 0.0
     jump_fraction = float((dc[i_j + 1 : i_j + 4].max() - dc[i_j]) / delta_min)
     if method == "fit" and jump_fraction < 0.5:  # gradual detachment: minimum of a 5-point running mean
@@ -89,15 +142,9 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
         delta = float(-m.min())
         u_fit = line.rms / np.sqrt(5.0)
     elif method == "fit" and i_j + 1 >= 3:
-        lo = max(0, i_j + 1 - int(fit_points))
-        loc = fit_line(z[lo : i_j + 1], dc[lo : i_j + 1], clip=np.inf)
-        z_jump = 0.5 * (z[i_j] + z[i_j + 1])  # the instability lies between the two samples
-        delta = float(-loc(z_jump))
-        n_loc = i_j + 1 - lo
-        zc = z[lo : i_j + 1]
-        lever = 1.0 / n_loc + (z_jump - zc.mean()) ** 2 / max(float(np.sum((zc - zc.mean()) ** 2)), 1e-300)
-        u_fit = loc.rms * np.sqrt(lever)
-        step = abs(loc.slope) * dz
+        i_last = _last_contact(dc, i_j, int(fit_points), line.rms)
+        delta, u_fit, step = _contact_extrapolation(z, dc, i_last, int(fit_points), robust=i_last != i_j)
+        i_j = i_last
     elif method in ("fit", "min"):
         delta, u_fit = delta_min, line.rms
     else:

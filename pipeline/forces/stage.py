@@ -47,7 +47,8 @@ OUTLIER_RULES = {
     "esd": "generalized ESD test (Rosner 1983) at significance outlier_alpha over accepted curves, up to floor(n/3) outliers (none if n < 3)",
     "modified_z": "modified z-score 0.6745 |x - median| / MAD > outlier_z over accepted curves (none flagged if n < 3 or MAD = 0)",
 }
-MEAN_RULE = "mean, std (ddof=1) and sem over accepted non-outlier curves"
+MEAN_RULE = ("random-effects weighted mean over accepted non-outlier curves, weights 1/(u_i^2 + tau^2) with tau the "
+             "between-curve scatter (DerSimonian-Laird; the plain mean for equal u_i); sem: modified Knapp-Hartung")
 log = logging.getLogger(__name__)
 
 
@@ -124,7 +125,7 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
                 col[k][i] = v
     F_p = cal.k * col["delta_m"]
     u_F_stat = cal.k * col["u_delta_m"]
-    st = interval_stats(F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"])
+    st = interval_stats(F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"], u=u_F_stat)
     used = accepted & ~st.outlier
     u_k_rel, u_inv_rel, u_cal_rel, factor, u_factor, corr = _calibration_parts(cal, inv)
 
@@ -135,8 +136,9 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
         write_dataset(g, "file", [r["file"] for r in rows], "1", "curve file (#i: i-th curve of a map)")
         write_dataset(g, "accepted", accepted, "1", "curve passed reading and pull-off detection")
         write_dataset(g, "rejection_reason", [r["reason"] for r in rows], "1", "why the curve was rejected ('' if accepted)")
-        write_dataset(g, "outlier", st.outlier, "1", "flagged by the modified z-score rule (kept, not averaged)")
+        write_dataset(g, "outlier", st.outlier, "1", "flagged by the outlier rule (kept, not averaged)")
         write_dataset(g, "used", used, "1", "accepted and not an outlier: enters the interval mean")
+        write_dataset(g, "weight", st.weight, "1", "relative weight of the curve in the interval mean (0: not used)")
         write_dataset(g, "modified_z", st.modified_z, "1", "modified z-score of F_p (NaN if rejected)")
         write_dataset(g, "delta_V", col["delta_V"], "V", "max adhesive deflection Delta in volts (NaN if not recorded in V)")
         write_dataset(g, "delta_m", col["delta_m"], "m", "Delta in metres (= delta_V * InvOLS)")
@@ -193,8 +195,9 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
                 ("n_curves_used", st.n_used, "1", "curves in the mean"), ("n_curves_total", n, "1", "curves found"),
                 ("n_curves_rejected", int((~accepted).sum()), "1", "rejected curves (see curves/rejection_reason)"),
                 ("n_outliers", int(st.outlier.sum()), "1", "accepted curves flagged as outliers"),
-                ("delta_V_mean", float(np.mean(col["delta_V"][used])), "V", "mean Delta of used curves (V)"),
-                ("delta_m_mean", float(np.mean(col["delta_m"][used])), "m", "mean Delta of used curves (m)"),
+                ("F_p_tau", st.tau, "N", "between-curve scatter of F_p beyond the curves' own uncertainties (random effects)"),
+                ("delta_V_mean", float(np.sum(st.weight[used] * col["delta_V"][used])), "V", "weighted mean Delta of used curves (V)"),
+                ("delta_m_mean", float(np.sum(st.weight[used] * col["delta_m"][used])), "m", "weighted mean Delta of used curves (m)"),
                 ("u_F_p_calibration", st.mean * u_cal_rel, "N", "calibration part (k common to the tip; InvOLS the interval's own unless shared)"),
                 ("u_F_p_calibration_rel", u_cal_rel, "1", "relative calibration uncertainty"),
                 ("u_F_p_total", float(np.hypot(np.nan_to_num(st.sem), st.mean * u_cal_rel)), "N", "sqrt(sem^2 + calibration^2)")):

@@ -12,6 +12,16 @@ interval the MAD is itself so noisy that genuine 3 % scatter gets flagged and th
 standard error is then underestimated.  With fewer than 3 curves nothing is
 flagged.  Outliers stay in the file; the mean, standard deviation (ddof = 1; NaN
 for a single curve) and standard error are over the accepted, non-outlier curves.
+
+Mean: with each curve's own uncertainty u_i, a random-effects weighted mean
+(DerSimonian & Laird 1986): the between-curve variance tau^2 (genuine pull-off scatter,
+which usually dominates) is estimated from the curves, and each curve is weighted by
+1 / (u_i^2 + tau^2).  Curves of ordinary quality then weigh alike (the plain mean when the
+u_i are equal), while a curve whose reading is far less certain (a jittered jump-off, a
+noisy contact line) cannot move the mean much.  Its standard error is the modified
+Knapp-Hartung one (Knapp & Hartung 2003; Roever et al. 2015): sqrt(max(1, q) / sum w),
+q = sum w (x - mean)^2 / (n - 1), which is std / sqrt(n) for equal u_i and never below what
+the curves' own uncertainties allow.
 """
 from __future__ import annotations
 
@@ -30,6 +40,8 @@ class IntervalStats:
     n_used: int
     modified_z: np.ndarray
     outlier: np.ndarray
+    weight: np.ndarray  # relative weight of each curve in the mean (0: not used; sums to 1)
+    tau: float = float("nan")  # between-curve scatter (random-effects SD; NaN without u)
 
 
 def modified_z_scores(x) -> np.ndarray:
@@ -77,11 +89,34 @@ def generalized_esd(x, alpha: float = 0.05, max_outliers: int | None = None) -> 
     return out
 
 
-def interval_stats(values, accepted, threshold: float = 3.5, rule: str = "esd", alpha: float = 0.01) -> IntervalStats:
+def random_effects_mean(x, u):
+    """(mean, sem, tau, weights) of values ``x`` with 1-sigma uncertainties ``u`` (module doc).
+
+    Non-finite or non-positive u are replaced by the median of the others (by 1 if none)."""
+    x, u = np.asarray(x, float), np.asarray(u, float)
+    ok = np.isfinite(u) & (u > 0)
+    u = np.where(ok, u, np.median(u[ok]) if ok.any() else 1.0)
+    n = x.size
+    w = 1.0 / u**2
+    if n < 2:
+        return float(x.mean()), float("nan"), float("nan"), np.ones(n)
+    m = float(np.sum(w * x) / w.sum())
+    q_dl = float(np.sum(w * (x - m) ** 2))
+    tau2 = max(0.0, (q_dl - (n - 1)) / (w.sum() - np.sum(w**2) / w.sum()))
+    w = 1.0 / (u**2 + tau2)
+    m = float(np.sum(w * x) / w.sum())
+    q = float(np.sum(w * (x - m) ** 2)) / (n - 1)
+    return m, float(np.sqrt(max(q, 1.0) / w.sum())), float(np.sqrt(tau2)), w / w.sum()
+
+
+def interval_stats(values, accepted, threshold: float = 3.5, rule: str = "esd", alpha: float = 0.01,
+                   u=None) -> IntervalStats:
     """Statistics of ``values`` over ``accepted`` curves (bool mask, same length).
 
     ``rule`` "esd" (generalized ESD at ``alpha``) or "modified_z" (|M| > ``threshold``);
-    the modified z-score is returned in either case as a diagnostic.
+    the modified z-score is returned in either case as a diagnostic.  ``u``: each curve's
+    1-sigma uncertainty: the mean and its standard error are then the random-effects ones
+    (module doc); without it, the plain mean and std / sqrt(n).
     """
     values, accepted = np.asarray(values, float), np.asarray(accepted, bool)
     mz = np.full(values.size, np.nan)
@@ -93,10 +128,16 @@ def interval_stats(values, accepted, threshold: float = 3.5, rule: str = "esd", 
         outlier = accepted & (np.abs(np.nan_to_num(mz)) > threshold)
     else:
         raise ValueError(f"unknown outlier rule {rule!r} (esd or modified_z)")
-    used = values[accepted & ~outlier]
+    used_mask = accepted & ~outlier
+    used = values[used_mask]
     n = used.size
     if n == 0:
         raise ValueError("no accepted curves")
     std = float(used.std(ddof=1)) if n > 1 else float("nan")
-    sem = std / np.sqrt(n) if n > 1 else float("nan")
-    return IntervalStats(float(used.mean()), std, float(sem), float(np.median(used)), int(n), mz, outlier)
+    weight = np.zeros(values.size)
+    if u is None:
+        mean, sem, tau = float(used.mean()), (std / np.sqrt(n) if n > 1 else float("nan")), float("nan")
+        weight[used_mask] = 1.0 / n
+    else:
+        mean, sem, tau, weight[used_mask] = random_effects_mean(used, np.asarray(u, float)[used_mask])
+    return IntervalStats(mean, std, float(sem), float(np.median(used)), int(n), mz, outlier, weight, tau)

@@ -59,13 +59,19 @@ def _instability_gaps(F_p, k, lam):
 
 def make_force_curve(F_p, k, invols, *, seed=0, offset_V=0.0, tilt=0.0, noise=0.1e-9,
                      contact_stiffness=np.inf, adhesion_range=0.5e-9, setpoint_deflection=20e-9,
-                     z_range=None, n_points=2000, height_start=1.0e-6) -> SyntheticCurve:
+                     z_range=None, n_points=2000, height_start=1.0e-6, height_jitter=0.0,
+                     jitter="sensor") -> SyntheticCurve:
     """One approach + retract ramp.
 
     F_p (N) pull-off force, k (N/m), invols (m/V), offset_V (V), tilt (V/m of
     extension), noise (m rms deflection), contact_stiffness k_c (N/m, inf = hard),
     adhesion_range lam (m), setpoint_deflection (m, at the turnaround), z_range (m;
     default max(100 nm, 3 (F_p/k + setpoint))), n_points (total, split evenly).
+    ``height_jitter`` (m rms, white): ``jitter="sensor"``: the recorded height is the smooth
+    ramp plus sensor noise (the deflection follows the smooth ramp); ``"piezo"``: the piezo
+    itself jitters, the deflection follows the jittered position and the height sensor records
+    it (the lever stays in contact until the first sample beyond the instability).  Either way
+    contact and free points interleave in height at the jump-off.
     ``truth``: F_p, k, invols, delta_m (deflection at the jump-off), delta_V,
     contact_slope, z_pulloff/z_snap (m of extension), noise, offset_V, tilt.
     """
@@ -95,16 +101,24 @@ def make_force_curve(F_p, k, invols, *, seed=0, offset_V=0.0, tilt=0.0, noise=0.
     n_app = n_points // 2
     z_app = np.linspace(0.0, R, n_app)
     z_ret = np.linspace(R, 0.0, n_points - n_app)
-    d_app = np.where(z_app < z_snap, np.interp(z_app, zf_b, df_b), np.interp(z_app, zc_b, dc_b))
-    d_ret = np.where(z_ret >= z_po, np.interp(z_ret, zc_b, dc_b), np.interp(z_ret, zf_b, df_b))
-    z = np.concatenate([z_app, z_ret])
     rng = np.random.default_rng(seed)
-    d = np.concatenate([d_app, d_ret]) + rng.normal(0.0, noise, z.size)
+    d_noise = rng.normal(0.0, noise, n_points)
+    jit = rng.normal(0.0, height_jitter, n_points) if height_jitter > 0 else np.zeros(n_points)
+    if jitter not in ("sensor", "piezo"):
+        raise ValueError(f"jitter must be 'sensor' or 'piezo', got {jitter!r}")
+    za, zr = (z_app + jit[:n_app], z_ret + jit[n_app:]) if jitter == "piezo" else (z_app, z_ret)
+    snapped = np.maximum.accumulate(za >= z_snap)  # hysteresis: each state held until its instability
+    released = np.maximum.accumulate(zr < z_po)
+    d_app = np.where(snapped, np.interp(za, zc_b, dc_b), np.interp(za, zf_b, df_b))
+    d_ret = np.where(released, np.interp(zr, zf_b, df_b), np.interp(zr, zc_b, dc_b))
+    z = np.concatenate([z_app, z_ret]) + jit
+    d = np.concatenate([d_app, d_ret]) + d_noise
     volts = d / invols + offset_V + tilt * z
     seg = np.array(["approach"] * n_app + ["retract"] * (n_points - n_app), dtype=object)
     delta = -float(_force(g_off, F_p, lam, kc)) / k
     truth = dict(F_p=F_p, k=k, invols=invols, delta_m=delta, delta_V=delta / invols, contact_slope=s,
-                 z_pulloff=z_po, z_snap=z_snap, noise=noise, offset_V=offset_V, tilt=tilt, seed=seed, z_range=R)
+                 z_pulloff=z_po, z_snap=z_snap, noise=noise, offset_V=offset_V, tilt=tilt, seed=seed, z_range=R,
+                 height_jitter=height_jitter, jitter=jitter)
     return SyntheticCurve(height_start - z, volts, seg, truth)
 
 
