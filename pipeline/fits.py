@@ -128,7 +128,7 @@ def edge_covariance_of_params(jac, dres_doffset, basis, cov_c):
 
 
 def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_scale=1e-9,
-                  edge_basis=None, edge_cov=None, normal_rz=None) -> PowerLawFit:
+                  edge_basis=None, edge_cov=None, normal_rz=None, fixed_n=None) -> PowerLawFit:
     """Least-squares fit of z = z0 + |r|^n/(nQ) (Eq. 1) to points with z <= fit_height.
 
     r, z in m (r >= 0 measured from the axis, z from the profile's apex);
@@ -139,6 +139,8 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     cov(n, ln Q) = the propagated edge covariance + the residual covariance scaled by
     the fraction of the residual variance the edge noise does not explain (shape
     misfit).  Without it: residual covariance inflated by the residual autocorrelation.
+    ``fixed_n``: fit only Q and z0 with n held at this value (the paraboloid fit of a
+    reference, n = 2: R then comes from the curvature alone); var(n) = 0 in the covariance.
     """
     r = np.abs(np.asarray(r, float))
     z = np.asarray(z, float)
@@ -168,24 +170,28 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     lb = [N_BOUNDS[0], np.log(1e-6), z_min - hs]
     ub = [N_BOUNDS[1], np.log(1e6), z_min + hs]
     p0 = np.clip(p0, np.add(lb, 1e-9), np.subtract(ub, 1e-9))
-    res = optimize.least_squares(_residuals, p0, args=(rs, zs, hs), bounds=(lb, ub), x_scale="jac",
-                                 method="trf", max_nfev=500)
-    n, lrh, z0s = res.x
+    free = [0, 1, 2] if fixed_n is None else [1, 2]
+    full = (lambda q: q) if fixed_n is None else (lambda q: np.r_[float(fixed_n), q])  # noqa: E731
+    res = optimize.least_squares(lambda q: _residuals(full(q), rs, zs, hs), p0[free], bounds=(np.take(lb, free), np.take(ub, free)),
+                                 x_scale="jac", method="trf", max_nfev=500)
+    n, lrh, z0s = full(res.x)
     e = res.fun
-    dof = max(1, e.size - 3)
+    dof = max(1, e.size - len(free))
     s2 = float(e @ e) / dof
     J = res.jac
     flags = []
     edge_part = None
+    cov_p = np.zeros((3, 3))
     try:
-        cov_p = np.linalg.inv(J.T @ J) * s2 * _ess_factor(e, groups)
+        cov_f = np.linalg.inv(J.T @ J) * s2 * _ess_factor(e, groups)
         if has_edge_cov:
-            _, fp = _model(res.x, rs, hs)
+            _, fp = _model(full(res.x), rs, hs)
             de = (normal_rz[:, 1] - fp * normal_rz[:, 0]) / np.sqrt(1.0 + fp**2)
             cov_e, var_pt = edge_covariance_of_params(J, de, edge_basis, np.asarray(edge_cov) / sc**2)
             explained = float(np.mean(var_pt)) / max(float(np.mean(e**2)), 1e-300)
             edge_part = float(min(1.0, explained))
-            cov_p = cov_e + max(0.0, 1.0 - explained) * cov_p
+            cov_f = cov_e + max(0.0, 1.0 - explained) * cov_f
+        cov_p[np.ix_(free, free)] = cov_f
     except np.linalg.LinAlgError:
         cov_p = np.full((3, 3), np.nan)
         flags.append("singular_covariance")
@@ -201,7 +207,7 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
         flags.append("n_below_1.5")
     if not res.success:
         flags.append("not_converged")
-    if n <= N_BOUNDS[0] + 1e-6 or n >= N_BOUNDS[1] - 1e-6:
+    if fixed_n is None and (n <= N_BOUNDS[0] + 1e-6 or n >= N_BOUNDS[1] - 1e-6):
         flags.append("n_at_bound")
     if pixel_size is not None and rms > 2.0 * pixel_size:
         flags.append("residual_above_pixel")
@@ -280,7 +286,9 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
     """Fit the combined profile and each flank of ``profile_h5``; write ``out_h5`` (atomic).
 
     Layout: /fit (combined) and /fit_left, /fit_right with datasets n, Q, ln_Q, R,
-    S, z0, cov_n_lnQ, rms_residual, fit_error_percent, fit_height, r, z, flags.
+    S, z0, cov_n_lnQ, rms_residual, fit_error_percent, fit_height, r, z, flags; /fit_n2 the
+    paraboloid fit (n held at 2) of the combined profile, used for a reference interval
+    whose n is consistent with 2 (``pipeline.inversion.shape_for_inversion``).
     """
     prof, px = _read_profile(profile_h5)
     fits = {}
@@ -303,6 +311,12 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
             _write_fit(g, fits[name])
         c = fits["combined"]
         f.attrs["flagged"] = bool(c.flags)
+        r, z, edge = prof["combined"]
+        try:
+            para = fit_power_law(r, z, fit_height, S, pixel_size=px, groups=prof["flank"], fixed_n=2.0, **(edge or {}))
+            _write_fit(h5io.create_group(f, "fit_n2", model="paraboloid z = z0 + r^2/(2R): n held at 2, Q = R"), para)
+        except FitError:
+            h5io.create_group(f, "fit_n2", failed=True)
 
 
 def read_fit(fit_h5, group="fit"):
