@@ -747,10 +747,18 @@ __all__ = [
 
 
 # ------------------------------------------------------------- synthetic wear tests
-def write_synthetic_fit(path, n_obs, lnr_obs, S, cov, flags=("synthetic",), rms_residual=0.1e-9):
-    """A stage-2 style fit file with the fitted (n, ln R) and the covariance of (n, ln Q)."""
+def write_synthetic_fit(path, n_obs, lnr_obs, S, cov, flags=("synthetic",), rms_residual=0.1e-9, paraboloid=None):
+    """A stage-2 style fit file with the fitted (n, ln R) and the covariance of (n, ln Q);
+    ``paraboloid``: (ln R, var ln R) of the n = 2 fit (group fit_n2), or None."""
     lnq_obs = (n_obs - 2.0) * np.log(S) + (n_obs - 1.0) * lnr_obs
     with atomic_h5(path, stage="fit", synthetic=True) as f:
+        if paraboloid is not None:
+            gp = create_group(f, "fit_n2")
+            for name, val in (("n", 2.0), ("ln_Q", paraboloid[0]), ("Q", np.exp(paraboloid[0])), ("R", np.exp(paraboloid[0])),
+                              ("S", S), ("rms_residual", rms_residual)):
+                write_dataset(gp, name, val, "1")
+            write_dataset(gp, "cov_n_lnQ", np.diag([0.0, paraboloid[1]]), "1")
+            write_dataset(gp, "flags", np.array([], dtype=object), "1")
         g = create_group(f, "fit")
         write_dataset(g, "n", n_obs, "1")
         write_dataset(g, "ln_Q", lnq_obs, "1")

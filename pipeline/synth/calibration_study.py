@@ -6,7 +6,8 @@ from interval to interval, k stays.  Every interval has ``n_curves`` force curve
 CSV in volts, as an instrument would) with ``scatter`` (2-5 %) curve-to-curve pull-off
 variation; the true interval F_p comes from the full M-D-n model (Zheng & Yu) for W_A and h.
 The power-law fits are drawn around the true shape with the stated covariance (the TEM stage
-is not part of this study).  The tip configuration gives k but no InvOLS at all, the situation
+is not part of this study); the reference also gets the paraboloid fit (n held at 2, its R drawn
+with sigma_lnR) that stage 2 writes and stage 4 uses for a reference consistent with n = 2.  The tip configuration gives k but no InvOLS at all, the situation
 the default per-interval calibration has to handle.
 
 Inconsistent cases on purpose: ``ref_bias`` (the reference interval's forces off by this
@@ -116,8 +117,12 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
         lnr_obs = np.log(case.R) + case.sigma_lnR * rng.standard_normal()
         J = np.array([[1.0, 0.0], [np.log(case.S) + lnr_obs, n_obs - 1.0]])
         fits[nm] = str(root / "fits" / f"{nm}.h5")
+        para = None
+        if i == 0:  # the reference's paraboloid fit (n held at 2), as stage 2 writes it
+            lnr2 = np.log(case.R) + case.sigma_lnR * np.random.default_rng([case.seed, 0xA2B]).standard_normal()
+            para = (lnr2, case.sigma_lnR**2)
         write_synthetic_fit(fits[nm], n_obs, lnr_obs, case.S, J @ np.diag([case.sigma_n**2, case.sigma_lnR**2]) @ J.T,
-                            flags=("",), rms_residual=0.05e-9)
+                            flags=("",), rms_residual=0.05e-9, paraboloid=para)
         ivs.append({"name": nm, "scans": 10 * i, "reference": i == 0})
     h = np.geomspace(0.1e-9, 20e-9, 160) if h_grid is None else h_grid
     run_inversion(fits, forces, root / "inversion.h5", intervals=ivs, E_star=case.E_star, u_E_star=0.03 * case.E_star,
