@@ -5,9 +5,11 @@ chip is remounted for every interval: the true InvOLS changes by ``drift`` (rela
 from interval to interval, k stays.  Every interval has ``n_curves`` force curves (written as
 CSV in volts, as an instrument would) with ``scatter`` (2-5 %) curve-to-curve pull-off
 variation; the true interval F_p comes from the full M-D-n model (Zheng & Yu) for W_A and h.
-The power-law fits are drawn around the true shape with the stated covariance (the TEM stage
-is not part of this study); the reference also gets the paraboloid fit (n held at 2, its R drawn
-with sigma_lnR) that stage 2 writes and stage 4 uses for a reference consistent with n = 2.  The tip configuration gives k but no InvOLS at all, the situation
+The power-law fits are drawn around the true shape as stage 2 measures it (n and the radius at
+the top of the fit window nearly independent, with the sample images' sigma_n 0.03-0.08 and
+sigma(ln r_h) 0.001-0.003; the TEM stage itself is not part of this study); the reference also
+gets the paraboloid fit (n held at 2) that stage 2 writes and stage 4 uses for a reference
+consistent with n = 2.  The tip configuration gives k but no InvOLS at all, the situation
 the default per-interval calibration has to handle.
 
 Inconsistent cases on purpose: ``ref_bias`` (the reference interval's forces off by this
@@ -41,7 +43,7 @@ class Case:
     scatter: float
     n_curves: int
     sigma_n: float
-    sigma_lnR: float
+    sigma_ln_rh: float  # 1-sigma of ln r_h, the radius at the top of the 6 nm fit window
     bias: np.ndarray = field(default_factory=lambda: np.ones(0))  # force factor per interval (1: none)
 
 
@@ -61,12 +63,29 @@ def draw_case(seed: int, kind: str = "rigid") -> Case:
         h=rng.uniform(0.4e-9, 0.8e-9) if elastic else rng.uniform(2.5e-9, 6e-9),
         E_star=rng.uniform(30e9, 60e9) if elastic else rng.uniform(60e9, 150e9),
         k=rng.uniform(0.5, 3.0), u_k_rel=0.05, invols=invols0 * (1.0 + drift * rng.standard_normal(m)),
-        scatter=rng.uniform(0.02, 0.05), n_curves=8, sigma_n=rng.uniform(0.01, 0.03), sigma_lnR=0.02, bias=np.ones(m))
+        scatter=rng.uniform(0.02, 0.05), n_curves=8, sigma_n=rng.uniform(0.03, 0.08), sigma_ln_rh=rng.uniform(0.001, 0.003), bias=np.ones(m))
     if kind == "wrong_reference":
         case.bias[0] = 1.0 + rng.choice([-1.0, 1.0]) * 0.10
     elif kind == "hidden_bias":
         case.bias[int(rng.integers(1, m))] = 1.0 + rng.choice([-1.0, 1.0]) * 0.10
     return case
+
+
+FIT_HEIGHT = 6e-9
+
+
+def _observed_shape(case: Case, n: float, rng):
+    """A fitted (n, ln R) and cov(n, ln Q) drawn as stage 2 measures them: n and ln r_h (the
+    radius at the top of the fit window) nearly independent, sigma_n and sigma_ln_rh as on the
+    sample tips' images (0.03-0.14 and 0.001-0.003); ln Q = n ln r_h - ln n - ln h_fit."""
+    lnq = (n - 2.0) * np.log(case.S) + (n - 1.0) * np.log(case.R)
+    ln_rh = (lnq + np.log(n) + np.log(FIT_HEIGHT)) / n
+    n_obs = n + case.sigma_n * rng.standard_normal()
+    ln_rh_obs = ln_rh + case.sigma_ln_rh * rng.standard_normal()
+    lnq_obs = n_obs * ln_rh_obs - np.log(n_obs) - np.log(FIT_HEIGHT)
+    T = np.array([[1.0, 0.0], [ln_rh_obs - 1.0 / n_obs, n_obs]])
+    cov = T @ np.diag([case.sigma_n**2, case.sigma_ln_rh**2]) @ T.T
+    return n_obs, (lnq_obs - (n_obs - 2.0) * np.log(case.S)) / (n_obs - 1.0), cov
 
 
 def true_forces(case: Case) -> np.ndarray:
@@ -113,15 +132,13 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
         run_forces(paths, forces[nm], root / "forces" / f"{nm}.png", cantilever=cant, reader={}, tip=f"case{case.seed}",
                    interval=nm, interval_cfg=icfg)
         fp_err.append(load_forces(forces[nm])["F_p_mean"] / F_curves.mean() - 1.0)
-        n_obs = n + case.sigma_n * rng.standard_normal()
-        lnr_obs = np.log(case.R) + case.sigma_lnR * rng.standard_normal()
-        J = np.array([[1.0, 0.0], [np.log(case.S) + lnr_obs, n_obs - 1.0]])
+        n_obs, lnr_obs, cov = _observed_shape(case, n, rng)
         fits[nm] = str(root / "fits" / f"{nm}.h5")
         para = None
         if i == 0:  # the reference's paraboloid fit (n held at 2), as stage 2 writes it
-            lnr2 = np.log(case.R) + case.sigma_lnR * np.random.default_rng([case.seed, 0xA2B]).standard_normal()
-            para = (lnr2, case.sigma_lnR**2)
-        write_synthetic_fit(fits[nm], n_obs, lnr_obs, case.S, J @ np.diag([case.sigma_n**2, case.sigma_lnR**2]) @ J.T,
+            lnr2 = np.log(case.R) + 2.0 * case.sigma_ln_rh * np.random.default_rng([case.seed, 0xA2B]).standard_normal()
+            para = (lnr2, (2.0 * case.sigma_ln_rh) ** 2)
+        write_synthetic_fit(fits[nm], n_obs, lnr_obs, case.S, cov,
                             flags=("",), rms_residual=0.05e-9, paraboloid=para)
         ivs.append({"name": nm, "scans": 10 * i, "reference": i == 0})
     h = np.geomspace(0.1e-9, 20e-9, 160) if h_grid is None else h_grid
