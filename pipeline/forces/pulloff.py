@@ -1,27 +1,41 @@
-"""Pull-off detection on the retract segment: Delta = largest adhesive deflection before the jump-off.
+"""Pull-off detection on the retract segment: Delta = largest adhesive deflection.
 
-1. Baseline (offset + tilt in z) fitted on the free part of the retract, i.e. the
-   points farther from the sample than the jump-off, leaving out the fraction
-   ``baseline_gap`` of that range next to the jump (ringing, long-range forces).
-   A first pass uses the farthest 30 % of the piezo range to locate the jump.
-2. The jump-off is the last point, after the deepest minimum, still below half of
-   that minimum; the lever snaps back to the baseline after it.
-3. ``method='fit'`` (default): a line through the last ``fit_points`` contact points
-   before the jump, evaluated half-way to the next sample (the instability lies
-   between them; unbiased over the sampling phase) -- also removes the bias of
-   picking the most negative noise sample.  Where the height record is noisy (sensor noise,
-   piezo jitter) the line is fitted against the sample index instead (errors in the
-   abscissa flatten a line; see ``_contact_extrapolation``).  If the jump is not sharp (the rise over
-   the next 3 samples is < 50 % of Delta: gradual detachment, soft samples) the
-   minimum of a 5-point running mean is used instead.
-   ``method='min'``: the raw minimum.
-4. Rejected (``ForceCurveError``) when there is no jump back to the baseline, the
-   free part is too short, or Delta < ``min_snr`` x baseline noise rms.
+The pull-off force is the largest attraction the lever feels, k Delta, where Delta is the
+deepest point of the (noise-free) retract curve below the baseline.  Where that point lies
+depends on the lever and the force law, and the reading follows the shape the curve shows:
 
-The sampling step limits what any method can see: the true instability lies
-between the last contact sample and the next one, so u(Delta) includes the
-contact step over sqrt(12) besides the fit error (per-curve error up to half a
-step, e.g. 0.1 nm for 0.2 nm piezo steps on a hard contact).
+* **sharp jump** (a soft lever: the adhesive force reaches its largest value and the lever
+  lets go within a sample): the deepest point is where the contact line ends.  A line through
+  the last ``fit_points`` contact points is evaluated at the moment of the jump, taken where
+  the signal crosses half-way between the contact line and the level after the jump
+  (interpolated between samples: half-way between the last contact sample and the first free
+  one on an unfiltered record; on a record through an anti-alias filter, whose step response
+  crosses 50 % near its group delay, this also undoes the filter's lag on the contact line).
+  Where the height record is noisy (sensor noise, piezo jitter) the line is fitted against the
+  sample index instead (errors in the abscissa flatten a line; see ``_contact_extrapolation``),
+  and samples that a jittering piezo puts back on the contact line after an apparent jump-off
+  are still contact (``_last_contact``).
+* **corner** (a stiffer lever under a force law that is largest at contact, such as a Dugdale
+  law over a tip: the lever follows the law past the contact point, so the curve turns up
+  at a corner and rises along a detaching branch before any jump) or **rounded minimum** (a
+  force law whose largest attraction is away from contact, e.g. L-J or an exponential law,
+  under a stiff lever; also a contact line that bends towards a minimum just before the jump):
+  two straight arms joined by a hyperbola whose rounding is fitted (0: a sharp corner), through
+  the samples within max(25 % of the depth, 8 x the noise) of the minimum on both sides (at
+  least 4 on each), up to the jump; Delta is its lowest point, and its uncertainty includes how far that moves
+  over the roundings the noise cannot tell apart.  Where the hinge does not describe the
+  samples (an irregular release on a soft sample), the minimum of a 5-sample running mean.
+``method='min'`` gives the raw minimum (biased deep by the noise).
+
+Baseline (offset + tilt in z): fitted on the free part of the retract, the points farther from
+the sample than the jump-off, leaving out the fraction ``baseline_gap`` of that range next to the
+jump (ringing, long-range forces); a first pass on the farthest 30 % of the piezo range locates
+the jump.  Rejected (``ForceCurveError``) when there is no jump back to the baseline, the free
+part is too short, or Delta < ``min_snr`` x baseline noise rms.
+
+The sampling step limits what any method sees at a sharp jump: the instability lies between the
+last contact sample and the next one, so u(Delta) includes the contact step over sqrt(12)
+besides the fit error.
 """
 from __future__ import annotations
 
@@ -45,6 +59,7 @@ class PullOff:
     baseline: Line
     n_baseline: int
     jump_fraction: float  # rise over 3 samples after the jump-off / Delta (< 0.5: gradual detachment)
+    shape: str = "sharp jump"  # how Delta was read: sharp jump | corner | rounded minimum | raw minimum
 
 
 def _jump_index(dc: np.ndarray, path) -> int:
@@ -78,45 +93,190 @@ def _last_contact(dc, i_j, fit_points, rms):
     """Move the jump-off past samples that look free but are followed, within ``fit_points``
     samples, by samples that can only be in contact (deeper than half the adhesive dip and than
     4 x the baseline noise): a jittering piezo moves the lever back and forth along its contact
-    line, so its deflection can rise and fall again before the lever lets go."""
+    line, so its deflection can rise and fall again before the lever lets go.  Such a sample
+    must lie below the first one after the rise (by 4 x noise): a jump seen through an anti-alias
+    filter rises monotonically, its first samples still deep, and is no jitter."""
     for _ in range(100):
         thr = -max(0.5 * -dc[i_j], 4.0 * rms)
         hi = min(dc.size - 1, i_j + 1 + fit_points)
-        later = np.flatnonzero(dc[i_j + 1 : hi] < thr)
+        seg = dc[i_j + 1 : hi]
+        later = np.flatnonzero((seg < thr) & (seg < dc[i_j + 1] - 4.0 * rms))
         if later.size == 0:
             return i_j
         i_j = i_j + 1 + int(later[-1])
     return i_j
 
 
-def _contact_extrapolation(z, dc, i_j, fit_points, robust=False):
-    """(Delta, u_fit, step) from a line through the last ``fit_points`` contact points,
-    evaluated half-way between the last contact sample and the first free one.
+def _abscissa(z, dc, lo, hi):
+    """The regressor for lines over samples lo..hi: the recorded height, or the sample index
+    (time; the piezo moves at a steady rate) where the height record is clearly noisier than
+    the deflection it drives (its residuals < 0.8 x the height fit's).  Returns (x, by_index)."""
+    zc, yc, ic = z[lo:hi + 1], dc[lo:hi + 1], np.arange(lo, hi + 1, dtype=float)
+    by_index = fit_line(ic, yc, clip=np.inf).rms < 0.8 * fit_line(zc, yc, clip=np.inf).rms
+    return (np.arange(z.size, dtype=float) if by_index else z), by_index
 
-    The regressor is the recorded height, or the sample index (time) where the height record
-    is noisier than the deflection it drives (height-sensor noise: a line fitted against a
-    noisy abscissa is flattened towards the window's mean -- errors in variables -- and reads
-    Delta up to ~20 % low).  The piezo moves at a steady rate in time, so the index is an
-    abscissa without that error; it is used when its residuals are clearly the smaller
-    (rms < 0.8 x), so clean ramps keep the height fit.  The lever stayed in contact at every
-    contact sample, so the instability lies between the lowest of their heights and the first
-    free sample's (the two neighbours on a clean ramp); ``step`` is the change of the line over
-    that bracket.  ``robust``: one 3-sigma rejection pass (free samples interleaved by jitter)."""
+
+def _noise_near(dc, i, half=10):
+    """Noise rms of the samples just before ``i`` about a straight line (m or V)."""
+    lo = max(0, i - 2 * half)
+    if i - lo < 4:
+        return 0.0
+    return fit_line(np.arange(lo, i, dtype=float), dc[lo:i], clip=np.inf).rms
+
+
+def _crossing_index(dc, i_last, i_rise, line_value):
+    """Fractional sample index where the jump crosses half-way between the contact line's value
+    ``line_value`` and the level after the jump (median of the samples 2-6 after the largest rise)."""
+    after = dc[i_rise + 2 : i_rise + 7]
+    level = float(np.median(after)) if after.size else float(dc[min(i_rise + 1, dc.size - 1)])
+    mid = 0.5 * (line_value + level)
+    m = i_last + 1
+    while m < dc.size - 1 and dc[m] < mid and m <= i_rise + 1:
+        m += 1
+    a, b = float(dc[m - 1]), float(dc[m])
+    frac = float(np.clip((mid - a) / (b - a), 0.0, 1.0)) if b > a else 0.5
+    return (m - 1) + frac
+
+
+def _contact_extrapolation(z, dc, i_j, fit_points, i_rise, robust=False):
+    """(Delta, u_fit, step, last contact index) at a sharp jump: a line through the last
+    ``fit_points`` contact points, evaluated where the jump crosses half-way (``_crossing_index``).
+
+    The regressor is the recorded height or the sample index (``_abscissa``).  The lever stayed
+    in contact at every contact sample, so on a jittered ramp the instability lies between the
+    lowest of their heights and the first free sample's; ``step`` is the change of the line over
+    the sample interval the jump falls in.  ``robust``: one 3-sigma rejection pass (free samples
+    interleaved by jitter).  ``i_j``: the last sample before the jump's transition
+    (``_transition_start``); the samples a filter lifts with the jump are left to the crossing."""
     lo = max(0, i_j + 1 - fit_points)
-    zc, yc, ic = z[lo : i_j + 1], dc[lo : i_j + 1], np.arange(lo, i_j + 1, dtype=float)
-    line_z, line_i = fit_line(zc, yc, clip=np.inf), fit_line(ic, yc, clip=np.inf)
-    by_index = line_i.rms < 0.8 * line_z.rms
-    x = ic if by_index else zc
-    if robust:
-        keep = np.abs(yc - (line_i if by_index else line_z)(x)) <= 3.0 * (line_i if by_index else line_z).rms
-        x, yc, zc = x[keep], yc[keep], zc[keep]
+    x_all, by_index = _abscissa(z, dc, lo, i_j)
+    x, yc = x_all[lo : i_j + 1], dc[lo : i_j + 1]
     line = fit_line(x, yc, clip=np.inf)
+    if robust:
+        keep = np.abs(yc - line(x)) <= 3.0 * line.rms
+        x, yc = x[keep], yc[keep]
+        line = fit_line(x, yc, clip=np.inf)
+    s50 = _crossing_index(dc, i_j, max(i_rise, i_j), float(line(x_all[i_j])))
     if by_index:
-        v, u = _line_at(x, yc, i_j + 0.5, line)
-        return -v, u, abs(line.slope)
-    z_last = float(zc.min()) if robust else float(z[i_j])
-    v, u = _line_at(x, yc, 0.5 * (z_last + z[i_j + 1]), line)
-    return -v, u, abs(line.slope) * abs(z_last - float(z[i_j + 1]))
+        x_eval = s50
+    else:
+        k = int(np.clip(np.floor(s50), 0, z.size - 2))
+        x_eval = float(z[k] + (s50 - k) * (z[k + 1] - z[k]))
+        if robust:  # jitter: the instability lies beyond the lowest contact height
+            x_eval = 0.5 * (float(z[lo : i_j + 1].min()) + float(z[i_j + 1]))
+    v, u = _line_at(x, yc, x_eval, line)
+    step = abs(line.slope) * (1.0 if by_index else abs(float(z[i_j]) - float(z[i_j + 1])))
+    if robust and not by_index:
+        step = abs(line.slope) * abs(float(z[lo : i_j + 1].min()) - float(z[i_j + 1]))
+    return -v, u, step, i_j
+
+
+def _rounded_hinge(s, y, n_corner=120, n_round=14):
+    """Two straight arms joined by a rounded corner (a hyperbola with the arms as asymptotes):
+    y = a + b u + c_r sqrt(u^2 + c^2), u = s - s_k.  c = 0 is a sharp corner (a Dugdale-like
+    force law, largest at contact), c > 0 a rounded minimum (a smooth law whose largest
+    attraction the lever passes before it lets go); a wide c is a parabola.  The corner s_k and
+    the rounding c are searched on grids, (a, b, c_r) by least squares.  Returns (lowest value of
+    the fitted curve over the window, its standard error, rss, c).  The standard error includes
+    half the spread of that value over the (s_k, c) that fit within Delta chi^2 < 1 of the best:
+    a rounding the noise cannot resolve widens it.  The lowest point of the curve, not the arms'
+    corner, is read even where the rounding is narrow: a rounding the data cannot resolve would
+    otherwise read the corner of two extrapolated arms (10 % deep on a stiff lever passing a
+    smooth maximum); the cost is that an anti-alias filter's rounding of a sharp corner reads
+    shallow by about a third of a sample's change (~1 % at 2 nm of deflection)."""
+    scale = abs(float(s[-1] - s[0])) / max(s.size - 1, 1) or 1.0
+    s = (np.asarray(s, float) - float(s[0])) / scale  # in sample steps: a well-conditioned basis
+    ds, span = 1.0, float(s[-1])
+    sk = np.linspace(s[1], s[-2], n_corner)
+    cc = np.concatenate([[0.0], np.geomspace(0.3 * ds, 0.5 * abs(span), n_round - 1)])
+    K, C = (g.ravel() for g in np.meshgrid(sk, cc, indexing="ij"))
+    u = s[None, :] - K[:, None]
+    A = np.stack([np.ones_like(u), u, np.sqrt(u * u + C[:, None] ** 2)], axis=-1)  # (G, N, 3)
+    AtA = np.einsum("gni,gnj->gij", A, A)
+    Aty = np.einsum("gni,n->gi", A, y)
+    AtA_r = AtA + 1e-12 * np.einsum("gii->g", AtA)[:, None, None] * np.eye(3)
+    coef = np.linalg.solve(AtA_r, Aty[..., None])[..., 0]
+    rss = np.sum((np.einsum("gni,gi->gn", A, coef) - y) ** 2, axis=1)
+    # the lowest point of each fitted curve inside the window
+    tt = np.linspace(s[0], s[-1], 201)
+    uu = tt[None, :] - K[:, None]
+    vals = coef[:, :1] + coef[:, 1:2] * uu + coef[:, 2:3] * np.sqrt(uu * uu + C[:, None] ** 2)
+    jmin = np.argmin(vals, axis=1)
+    low = vals[np.arange(K.size), jmin]
+    g = int(np.argmin(rss))
+    sigma2 = rss[g] / max(s.size - 5, 1)
+    row = np.array([1.0, uu[g, jmin[g]], np.sqrt(uu[g, jmin[g]] ** 2 + C[g] ** 2)])
+    var = sigma2 * float(row @ np.linalg.solve(AtA_r[g], row))
+    near = (rss - rss[g]) / max(sigma2, 1e-300) < 1.0
+    spread = 0.5 * float(np.ptp(low[near])) if near.sum() > 1 else 0.0
+    return float(low[g]), float(np.hypot(np.sqrt(max(var, 0.0)), spread)), float(rss[g]), float(C[g]) * scale
+
+
+def _transition_start(dc, i_rise, i_min, step_c, noise):
+    """The last sample before the jump's transition: walking back from the largest rise
+    ``i_rise``, samples that rose from their predecessor by more than max(2.5 x the contact line's
+    change per sample ``step_c``, 4 x noise) belong to the jump (an anti-alias filter spreads it
+    over several samples); a detaching branch rises no faster than the contact line fell."""
+    j = i_rise
+    while j - 1 > i_min and dc[j] - dc[j - 1] > max(2.5 * step_c, 4.0 * noise):
+        j -= 1
+    return j
+
+
+def _detaching_branch(dc, i_min, i_end, line, x, noise):
+    """Samples after the deepest one, before the jump, that leave the contact line upwards
+    (residual above it by > 3 x noise): the lever detaching along the force law."""
+    if i_end <= i_min:
+        return np.zeros(0, int)
+    idx = np.arange(i_min + 1, i_end + 1)
+    return idx[dc[idx] - line(x[idx]) > 3.0 * noise]
+
+
+def _band_window(dc, i_min, i_end, noise, min_side=4, most=200):
+    """Samples around the minimum within max(25 % of its depth, 8 x the noise) of it (>= ``min_side``
+    on each side), up to ``i_end``."""
+    band = float(dc[i_min]) + max(0.25 * -float(dc[i_min]), 8.0 * noise)
+    lo = i_min
+    while lo > 0 and (dc[lo - 1] <= band or i_min - lo < min_side) and i_min - lo < most:
+        lo -= 1
+    hi = i_min
+    while hi < i_end and (dc[hi + 1] <= band or hi - i_min < min_side) and hi - i_min < most:
+        hi += 1
+    return lo, hi
+
+
+def _smooth_minimum(dc, x, lo, hi, noise):
+    """(Delta, u, shape) from the rounded hinge through samples lo..hi (``_rounded_hinge``).
+
+    Where the hinge does not describe the samples (residual rms > 2 x the baseline ``noise``: a
+    soft sample's irregular release, several unbinding events) the minimum of a 5-sample running
+    mean is taken instead, with the misfit and the two readings' difference in its uncertainty."""
+    s, y = x[lo : hi + 1], dc[lo : hi + 1]
+    if s[0] > s[-1]:  # the height falls during the retract: order the abscissa in time
+        s = -s
+    low, u, rss, c = _rounded_hinge(s, y)
+    ds = abs(float(s[-1] - s[0])) / max(s.size - 1, 1)
+    rms = float(np.sqrt(rss / max(s.size - 5, 1)))
+    if rms <= 2.0 * noise:
+        return -low, u, ("corner" if c < ds else "rounded minimum")
+    m = np.convolve(y, np.ones(5) / 5.0, mode="valid")
+    low_m = float(m.min())
+    return -low_m, float(np.hypot(rms / np.sqrt(5.0), 0.5 * (low - low_m))), "irregular minimum (running mean)"
+
+
+def _bends_before_the_jump(dc, x, lo, hi, m=4, t_min=3.5):
+    """Whether the last ``m`` samples before the jump lie above the contact line through the ones
+    before them (lo..hi-m) on average, by more than ``t_min`` standard errors: the lever left the
+    line before it let go (a force law past its largest attraction followed by a stiff lever)."""
+    s, y = x[lo : hi + 1], dc[lo : hi + 1]
+    if s.size < m + 6:
+        return False
+    line = fit_line(s[:-m], y[:-m], clip=np.inf)
+    r = y[-m:] - line(s[-m:])
+    sxx = float(np.sum((s[:-m] - s[:-m].mean()) ** 2))
+    lever = 1.0 / (s.size - m) + (float(s[-m:].mean()) - float(s[:-m].mean())) ** 2 / max(sxx, 1e-300)
+    se = line.rms * np.sqrt(1.0 / m + lever)
+    return bool(r.mean() > t_min * se)
 
 
 def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, method="fit",
@@ -134,22 +294,49 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
     line = _baseline(z, d, free, min_baseline_points, path, "after the jump-off")
     dc = d - line(z)
     i_j = _jump_index(dc, path)
-    delta_min = float(-dc[: i_j + 1].min())
+    i_min = int(np.argmin(dc[: i_j + 1]))
+    delta_min = float(-dc[i_min])
     step = 0.0
     jump_fraction = float((dc[i_j + 1 : i_j + 4].max() - dc[i_j]) / delta_min)
-    if method == "fit" and jump_fraction < 0.5:  # gradual detachment: minimum of a 5-point running mean
-        m = np.convolve(dc[: i_j + 3], np.ones(5) / 5.0, mode="valid") if i_j >= 2 else dc[: i_j + 1]
-        delta = float(-m.min())
-        u_fit = line.rms / np.sqrt(5.0)
-    elif method == "fit" and i_j + 1 >= 3:
-        i_last = _last_contact(dc, i_j, int(fit_points), line.rms)
-        delta, u_fit, step = _contact_extrapolation(z, dc, i_last, int(fit_points), robust=i_last != i_j)
-        i_j = i_last
-    elif method in ("fit", "min"):
-        delta, u_fit = delta_min, line.rms
-    else:
+    shape = "sharp jump"
+    if method == "min":
+        delta, u_fit, shape = delta_min, line.rms, "raw minimum"
+    elif method != "fit":
         raise ValueError(f"unknown pull-off method {method!r} (fit | min)")
+    elif i_min < 5:
+        delta, u_fit, shape = delta_min, line.rms, "raw minimum (too few contact points for a line)"
+    else:
+        # where the curve turns: a jump right after the deepest sample, or a detaching branch first
+        lo = max(0, i_min - int(fit_points))
+        x, _ = _abscissa(z, dc, lo, i_min)
+        contact = fit_line(x[lo : i_min + 1], dc[lo : i_min + 1], clip=np.inf) if i_min - lo >= 3 else None
+        if jump_fraction >= 0.5:
+            step_c = abs(contact.slope) * float(np.median(np.abs(np.diff(x[lo : i_min + 1])))) if contact else 0.0
+            i_end = _transition_start(dc, i_j, i_min, step_c, line.rms)
+        else:
+            i_end = i_j + int(np.argmax(dc[i_j:] >= 0.5 * dc[i_min]))
+        branch = (_detaching_branch(dc, i_min, i_end, contact, x, max(contact.rms, 1e-300))
+                  if contact is not None else np.zeros(0, int))
+        # jitter: samples after the largest rise that are back on the contact line (not a filter's transition)
+        i_jit = _last_contact(dc, i_j, int(fit_points), line.rms) if jump_fraction >= 0.5 else i_j
+        i_last = i_jit if i_jit != i_j else i_end
+        if branch.size >= 1 or jump_fraction < 0.5:
+            delta, u_fit, shape = _smooth_minimum(dc, x, *_band_window(dc, i_min, i_end, line.rms), line.rms)
+            i_j = i_end
+        else:
+            lo_w = max(0, i_last + 1 - int(fit_points))
+            xw, _ = _abscissa(z, dc, lo_w, i_last)
+            if i_last == i_end and i_last - lo_w >= 8 and _bends_before_the_jump(dc, xw, lo_w, i_last):
+                # the line bends to a minimum before the jump: the lever passed the largest
+                # attraction before it let go
+                delta, u_fit, shape = _smooth_minimum(dc, xw, lo_w, i_last, line.rms)
+                shape += " before the jump"
+            else:
+                delta, u_fit, step, i_last = _contact_extrapolation(z, dc, i_last, int(fit_points), i_j,
+                                                                    robust=i_last != i_end)
+            i_j = i_last
     if not delta > min_snr * line.rms:
-        raise ForceCurveError(path, f"no pull-off event: adhesive deflection {delta:.3g} is below {min_snr:g} x baseline noise rms {line.rms:.3g}")
+        raise ForceCurveError(path, f"no pull-off event: adhesive deflection {delta:.3g} is below force_curves.min_pulloff_snr "
+                                    f"({min_snr:g}) x the baseline noise rms {line.rms:.3g} (same units as the deflection)")
     u = float(np.hypot(u_fit, step / np.sqrt(12.0)))
-    return PullOff(delta, u, delta_min, int(i_j), float(z[i_j]), line, line.n, jump_fraction)
+    return PullOff(delta, u, delta_min, int(i_j), float(z[i_j]), line, line.n, jump_fraction, shape)
