@@ -1,6 +1,7 @@
 """The TEM stage on images it does not model: the independent wave-optical simulator.
 
     .venv/bin/python benchmarks/bench_tem_independent.py [N] [--quick] [--jobs 2] [--csv out.csv]
+        [--verbose] [--seed0 S] [--fix KEY=VALUE ...] [--figures DIR]
 
 Draws N (default 120) images with ``pipeline.synth.tem_wave.draw_params`` (every parameter
 in the ranges of that module's doc; the layer cycles none / oxide / DLC and particles near
@@ -37,27 +38,50 @@ import numpy as np
 LAYERS = ("none", "oxide", "DLC")
 
 
-def case(i, seed0=0):
-    """Parameters of grid image ``i``: the layer cycles, apex particles on in every other pair."""
+def case(i, seed0=0, fixed=None):
+    """Parameters of grid image ``i``: the layer cycles, apex particles on in every other pair;
+    ``fixed``: keywords of ``draw_params`` that override the draw (e.g. defocus=0)."""
     from pipeline.synth.tem_wave import draw_params
 
-    return draw_params(seed0 + i, layer=LAYERS[i % 3], apex_particles=bool((i // 3) % 2))
+    kw = dict(layer=LAYERS[i % 3], apex_particles=bool((i // 3) % 2))
+    kw.update(fixed or {})
+    return draw_params(seed0 + i, **kw)
+
+
+def _parse_fixed(items):
+    """["defocus=0", "layer=none", "apex_particles=False"] -> dict with numbers / bools / strings."""
+    out = {}
+    for it in items or []:
+        k, _, v = it.partition("=")
+        if v in ("True", "False", "None"):
+            out[k] = {"True": True, "False": False, "None": None}[v]
+            continue
+        for conv in (int, float):
+            try:
+                out[k] = conv(v)
+                break
+            except ValueError:
+                pass
+        else:
+            out[k] = v
+    return out
 
 
 def run_one(args):
     """Simulate, save, run the stage, grade: one CSV row (dict)."""
-    i, seed0, workdir = args
+    i, seed0, workdir, fixed, figdir = args
     from pipeline.synth.tem_wave import simulate, write_image
     from pipeline.synth.tem_wave_truth import evaluate_file
 
-    p = case(i, seed0)
+    p = case(i, seed0, fixed)
     t0 = time.perf_counter()
     img, truth = simulate(p)
     t_sim = time.perf_counter() - t0
     fmt = "float tif" if p.bits == 0 else ("png" if (i * 7) % 10 < 3 else "tif")
     path = os.path.join(workdir, f"img_{i:04d}.{'png' if fmt == 'png' else 'tif'}")
     write_image(path, img, p.pixel_size)
-    g = evaluate_file(path, truth, pixel_size=p.pixel_size if fmt == "png" else None)
+    fig = os.path.join(figdir, f"image_{i:04d}.png") if figdir else None
+    g = evaluate_file(path, truth, pixel_size=p.pixel_size if fmt == "png" else None, figure=fig)
     os.remove(path)
     apex_parts = [q for q in truth["particles"] if q["kind"] == "apex"]
     row = dict(i=i, seed=p.seed, n=p.n, R_nm=p.R * 1e9, S=p.S, layer=p.layer, layer_nm=p.layer_thickness * 1e9,
@@ -149,6 +173,14 @@ def print_table(rows):
                   f"{s['dn_ideal']:10.3f} | {s['t_sim']:5.2f} {s['t_stage']:7.2f}")
         else:
             print(f"{label:<26} {s['N']:>4} {s['lost']:>4} | (all lost)")
+    print("\nlight-layer decision of the edge model (coated = layer found, ambiguous = flagged, single = neither):")
+    for layer in LAYERS:
+        sel = [r for r in rows if r["layer"] == layer and not (r["lost"] and "dn" not in r)]
+        c = collections.Counter(("ambiguous" if r["coating_ambiguous"] else r["coating_model"] or "-") for r in sel)
+        found = [r for r in sel if r["coating_model"] == "coated"]
+        dt = np.median([r["coating_found_nm"] - r["layer_nm"] for r in found]) if found else np.nan
+        print(f"  true {layer:<6} {len(sel):3d}: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items()))
+              + (f"; found layer - true layer median {dt:+.2f} nm" if found and layer != "none" else ""))
     reasons = collections.Counter(r["lost_reason"].split(" (")[0][:110] for r in rows if r["lost"])
     if reasons:
         print("\nintervals lost, by reason:")
@@ -164,12 +196,20 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (one thread each)")
     ap.add_argument("--csv", default=None, help="write one row per image to this CSV")
     ap.add_argument("--verbose", action="store_true", help="print one row per image")
+    ap.add_argument("--figures", default=None, metavar="DIR",
+                    help="save per image a PNG of the apex with the true and the extracted edge")
+    ap.add_argument("--fix", action="append", metavar="KEY=VALUE",
+                    help="hold a draw_params keyword for every image (repeatable), e.g. --fix defocus=0 "
+                         "--fix layer=none --fix apex_particles=False (SI units)")
     a = ap.parse_args(argv)
     n = 12 if a.quick else a.n
     t0 = time.perf_counter()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        jobs = [(i, a.seed0, tmp) for i in range(n)]
+        fixed = _parse_fixed(a.fix)
+        if a.figures:
+            os.makedirs(a.figures, exist_ok=True)
+        jobs = [(i, a.seed0, tmp, fixed, a.figures) for i in range(n)]
         if a.jobs > 1:
             import multiprocessing as mp
 
@@ -185,7 +225,7 @@ def main(argv=None):
                 _progress(r, a.verbose)
     wall = time.perf_counter() - t0
     print(f"\n{n} independent-simulator images through the current TEM stage + stage 2 "
-          f"(wall {wall:.0f} s on {a.jobs} process(es))\n")
+          f"(wall {wall:.0f} s on {a.jobs} process(es)){'; held: ' + ', '.join(a.fix) if a.fix else ''}\n")
     print_table(rows)
     used = [r for r in rows if not r["lost"]]
     if used:

@@ -54,27 +54,29 @@ Parameter ranges drawn by ``draw_params`` (every one can be fixed by a keyword)
 | pixel size, image side | 0.1-0.5 nm, 256-1024 px (field 60-220 nm) | |
 | rotation, orientation | -15..15 deg, apex down 80 % / up 20 % | |
 | SNR | 5-30 | |
-| bit depth | 8 (35 %), 16 (50 %), float32 (15 %) | 15 % of integer images saturate the vacuum |
+| bit depth | 8 (35 %), 16 (50 %), float32 (15 %) | 15 % of integer images saturate the vacuum (level 1.02-1.2 x full scale) |
 | PSF | Gaussian 0.3-0.8 px + tail 0-15 % over 2-5 px | |
 | read noise, offset | 16 bit: 1-8 DN, 0-300 DN; 8 bit: 0.2-1 DN, 0-8 DN | |
 | illumination | gradient 0-8 % across the field, vignetting 0-10 % | |
 
-Materials (mean inner potential V0; absorption length as the image shows it)
+Materials (mean inner potential V0; absorption length lambda as the image shows it)
 
-| material | V0 (V) | absorption length | source / assumption |
+| material | V0 (V) | lambda | source / assumption |
 |---|---|---|---|
-| Si (crystalline core) | 12.1 | 25-80 nm at 200 kV (drawn) | V0: 11.5-12.6 V measured and computed (electron holography, DFT; Kruse et al. 2003); lambda: mass thickness ~80 nm (a screened-Rutherford estimate below) shortened by Bragg scattering outside the aperture (extinction distances of Si 60-80 nm at 200 kV) |
-| SiO2 (native oxide) | 10.1 | lambda_core / (0.2-0.5) | amorphous SiO2 ~10 V (holography literature, range 9.5-11 V) |
-| DLC (a-C:H coating) | 9.5 | lambda_core / (0.05-0.30) | a-C 9.09 V at 1.75 g/cm^3 (Wanner et al. 2006), denser DLC higher; contrast 5-30 % of the core's as issue 16 says |
+| Si (crystalline core) | 12.1 | 25-80 nm at 200 kV (drawn) | V0 11.5-12.6 V (holography, DFT: Kruse et al. 2003); lambda see below |
+| SiO2 (native oxide) | 10.1 | lambda_core / (0.2-0.5) | amorphous SiO2 ~10 V (holography, 9.5-11 V) |
+| DLC (a-C:H coating) | 9.5 | lambda_core / (0.05-0.30) | a-C 9.09 V at 1.75 g/cm^3 (Wanner et al. 2006); contrast as issue 16 says |
 | a-C contamination | 8.0 | lambda_core / (0.1-0.3) | hydrocarbon contamination, less dense than a-C: 7-9 V |
 
-Mass-thickness estimate (assumption, for the order of magnitude): elastic cross-section
-sigma_e = 1.5e-24 m^2 gamma^2 Z^1.5 / beta^2 (1 - Z beta / 596 ... ) (Egerton, "Electron
-Energy-Loss Spectroscopy", 3rd ed., Eq. 3.3 form) and the fraction 1 / (1 + alpha^2 /
-theta_0^2) scattered outside an aperture alpha (Lenz screening angle theta_0 = lambda /
-(2 pi a), a = 0.885 a_0 Z^(-1/3)) give at 200 kV and 10 mrad: a-C (2 g/cm^3) ~170 nm, Si
-~80 nm, i.e. a ratio ~0.5; the darker crystalline core (diffraction contrast) and the
-lower density of a-C:H bring it to the 5-30 % the issue describes.
+Absorption lengths (assumption, order of magnitude): elastic scattering outside a 10 mrad
+aperture at 200 kV (screened-Rutherford cross-sections, Egerton 2011 Sec. 3.1; the fraction
+1 / (1 + alpha^2 / theta_0^2) beyond the aperture, Lenz screening angle theta_0 =
+lambda / (2 pi a), a = 0.885 a_0 Z^(-1/3)) gives mass-thickness lengths of order 150-300 nm
+for a-C (2 g/cm^3) and 80-160 nm for amorphous Si: a ratio ~0.5.  The crystalline core
+loses more to Bragg beams outside the aperture (extinction distances of Si 60-80 nm at
+200 kV), hence 25-80 nm; a-C:H is less dense than a-C.  Together they give the 5-30 %
+layer/core contrast the issue describes; kappa (= lambda_core / lambda_layer) is drawn
+directly.  All lengths scale with beta^2 (v/c squared) between voltages.
 
 References: E. J. Kirkland, Advanced Computing in Electron Microscopy, 2nd ed. (Springer
 2010), Ch. 2-3, 5 (wavelength, interaction constant, transfer function, envelopes);
@@ -567,7 +569,7 @@ def draw_params(seed, apex_particles=None, shank_contamination=None, **fixed) ->
         d["layer_contrast"] = {"none": 0.2, "oxide": 0.2 + 0.3 * k2, "DLC": 0.05 + 0.25 * k2}[kind]
     bits = d["bits"]
     if "background_level" not in fixed:
-        d["background_level"] = (1.05 + 0.35 * b2 if (b1 < 0.15 and bits) else
+        d["background_level"] = (1.02 + 0.18 * b2 if (b1 < 0.15 and bits) else
                                  (0.55 + 0.35 * b2 if bits == 8 else 0.05 + 0.75 * b2))
     if "offset" not in fixed:
         d["offset"] = {8: 8 * b3, 16: 300 * b3, 0: 0.0}[bits]

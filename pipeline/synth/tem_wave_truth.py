@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = ["tip_frame", "true_section_area", "edge_errors", "ideal_fit", "grade", "sigma_n", "lost_reason",
-           "evaluate_file", "HEIGHTS"]
+           "evaluate_file", "plot_comparison", "HEIGHTS"]
 
 HEIGHTS = np.linspace(1e-9, 6e-9, 11)  # m, Eq. 12 pull-off heights h
 
@@ -167,12 +167,13 @@ def lost_record(reason):
     return dict(lost=True, lost_reason=reason)
 
 
-def evaluate_file(image_path, truth, pixel_size=None, workdir=None, fit_height=6e-9, S=1.0):
+def evaluate_file(image_path, truth, pixel_size=None, workdir=None, fit_height=6e-9, S=1.0, figure=None):
     """Run ``image_path`` through the workflow path (module doc) and grade it.
 
     ``pixel_size`` (m) is what a tip YAML would give (used only for files without a
-    calibration).  Returns the ``grade`` dict (or a lost record) plus ``t_stage`` (s: read,
-    profile, fit) and ``t_profile`` (s: extract_profile alone)."""
+    calibration); ``figure``: a PNG path for ``plot_comparison``.  Returns the ``grade``
+    dict (or a lost record) plus ``t_stage`` (s: read, profile, fit) and ``t_profile``
+    (s: extract_profile alone)."""
     from pipeline.fits import FitError, read_fit, run_fit
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import read_tem_image
@@ -192,7 +193,64 @@ def evaluate_file(image_path, truth, pixel_size=None, workdir=None, fit_height=6
         except (ValueError, FitError, np.linalg.LinAlgError) as exc:
             out = lost_record(f"{type(exc).__name__}: {exc}")
             out.update(t_stage=time.perf_counter() - t0, t_profile=float("nan"))
+            if figure:
+                plot_comparison(read_tem_image(image_path, pixel_size).data, truth, None, out, figure)
             return out
     out = grade(profile, fit, truth, fit_height)
     out.update(t_stage=time.perf_counter() - t0, t_profile=t_prof)
+    if figure:
+        plot_comparison(image.data, truth, profile, out, figure)
     return out
+
+
+def plot_comparison(data, truth, profile, metrics, path, half_height=25e-9):
+    """PNG: the image around the true apex with the true outer silhouette (red), the
+    particles (cyan +), the extracted edge (yellow dots; the points stage 2 fits in green)
+    and the stage's apex and axis, titled with the main metrics."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    px = truth["pixel_size"]
+    r_a, c_a = truth["apex_px"]
+    h = half_height / px
+    H, W = data.shape
+    up = truth["orientation"] == "up"
+    r0, r1 = (r_a - 0.4 * h, r_a + 1.6 * h) if up else (r_a - 1.6 * h, r_a + 0.4 * h)
+    r0, r1 = int(max(0, r0)), int(min(H, r1))
+    c0, c1 = int(max(0, c_a - h)), int(min(W, c_a + h))
+    crop = data[r0:r1, c0:c1]
+    lo, hi = np.percentile(crop, [0.5, 99.5])
+    fig, ax = plt.subplots(figsize=(6, 6 * (r1 - r0) / max(c1 - c0, 1)))
+    ax.imshow(crop, cmap="gray", vmin=lo, vmax=hi, extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5),
+              interpolation="nearest")
+    s = np.asarray(truth["silhouette_px"])
+    ax.plot(s[:, 1], s[:, 0], "r-", lw=0.8, label="true outer silhouette")
+    for q in truth["particles"]:
+        ax.plot(q["centre_px"][1], q["centre_px"][0], "c+", ms=8)
+    if profile is not None:
+        e = profile.edge_px
+        used = profile.z <= 6e-9
+        ax.plot(e[:, 1], e[:, 0], ".", color="y", ms=1.5, label="extracted edge")
+        ax.plot(e[used, 1], e[used, 0], ".", color="lime", ms=2, label="fitted by stage 2")
+        a, u = profile.apex_px, profile.axis_px
+        ax.plot([a[1], a[1] + u[1] * h], [a[0], a[0] + u[0] * h], "b-", lw=0.6, label="stage axis")
+    ax.set_xlim(c0 - 0.5, c1 - 0.5)
+    ax.set_ylim(r1 - 0.5, r0 - 0.5)
+    ax.legend(fontsize=6, loc="lower right" if not up else "upper right")
+    if metrics.get("lost") and "dn" not in metrics:
+        title = f"LOST: {metrics['lost_reason'][:90]}"
+    else:
+        title = (f"n {truth['n']:.2f}: dn {metrics['dn']:+.3f} (sigma_n {metrics['sigma_n']:.3f}), edge RMS "
+                 f"{metrics['edge_rms'] * 1e9:.2f} nm (bias {metrics['edge_bias'] * 1e9:+.2f}), pull-off "
+                 f"{100 * metrics['pulloff_error_signed']:+.1f} %" + ("  LOST" if metrics.get("lost") else ""))
+    p = truth["params"]
+    sub = (f"{p['layer']} {p['layer_thickness'] * 1e9:.1f} nm, e {p['asymmetry']:+.3f}, df {p['defocus'] * 1e6:+.2f} um, "
+           f"{p['kv']:.0f} kV, px {p['pixel_size'] * 1e9:.2f} nm, SNR {p['snr']:.0f}, {p['bits'] or 'float'} bit, "
+           f"saturated {truth['saturated_fraction']:.0%}")
+    ax.set_title(title + "\n" + sub, fontsize=7)
+    ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
