@@ -102,7 +102,6 @@ from pathlib import Path
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import ndimage
 
 from pipeline.synth.tem_wave_geometry import TipBody, place_particle, projected_thickness
 from pipeline.synth.tem_wave_optics import (Detector, Optics, band_limit, delocalisation, detect, electron_beta2,
@@ -267,12 +266,15 @@ def _material_of(key, p):
 
 def _wave(th, pot, lam_abs, sigma, p):
     """psi = exp(sum_m [i sigma V_m - 1/(2 lambda_m)] t_m) from the projected thicknesses ``th``."""
-    expo = np.zeros(th["core"].shape, complex)
+    att = np.zeros(th["core"].shape)
+    phase = np.zeros(th["core"].shape)
     for key, t in th.items():
         mat = _material_of(key, p)
         if mat is not None:
-            expo += t * complex(-0.5 / lam_abs[mat], sigma * pot[mat])
-    return np.exp(expo)
+            att += t * (0.5 / lam_abs[mat])
+            phase += t * (sigma * pot[mat])
+    amp = np.exp(-att)
+    return amp * np.cos(phase) + 1j * (amp * np.sin(phase))
 
 
 def exit_wave(p: TemWaveParams, body=None, particles=None, pad=None):
@@ -297,10 +299,15 @@ def exit_wave(p: TemWaveParams, body=None, particles=None, pad=None):
         psi[r0:r0 + len(rows)] = w
         for k, v in mk.items():
             masks.setdefault(k, np.zeros((n_r, n_c), bool))[r0:r0 + len(rows)] = v
-    # cells where any material boundary passes: average the wave over sub-points
+    # cells where any material boundary passes (a mask differs from a 4-neighbour's):
+    # average the wave over sub-points
     band = np.zeros((n_r, n_c), bool)
     for v in masks.values():
-        band |= v ^ ndimage.binary_erosion(v, border_value=0) | (ndimage.binary_dilation(v) & ~v)
+        d0, d1 = v[1:] != v[:-1], v[:, 1:] != v[:, :-1]
+        band[1:] |= d0
+        band[:-1] |= d0
+        band[:, 1:] |= d1
+        band[:, :-1] |= d1
     ib, jb = np.nonzero(band)
     if ib.size:
         ss = _SUPERSAMPLE
@@ -499,10 +506,11 @@ def _params_dict(p):
 
 # ----------------------------------------------------------------------------- random draws
 
-def _fits(n, R, S, field_w, asym):
-    """True if the tip 26 nm above the apex is at most 55 % of the field wide."""
-    Q = S ** (n - 2) * R ** (n - 1)
-    return 2 * (n * Q * 26e-9) ** (1 / n) * (1 + abs(asym)) <= 0.55 * field_w
+def _fits(d, field_w):
+    """True if the tip of draw ``d`` is at most 55 % of the field wide 26 nm above its apex."""
+    body = TipBody(d["n"], d["S"] ** (d["n"] - 2) * d["R"] ** (d["n"] - 1), z_join=d["z_join"],
+                   shank_slope=math.tan(math.radians(d["shank_half_angle_deg"])), blend_length=d["blend_length"])
+    return 2 * float(body.radius(26e-9)) * (1 + abs(d["asymmetry"])) <= 0.55 * field_w
 
 
 def draw_params(seed, apex_particles=None, shank_contamination=None, **fixed) -> TemWaveParams:
@@ -578,12 +586,12 @@ def draw_params(seed, apex_particles=None, shank_contamination=None, **fixed) ->
     px = d["pixel_size"]
     if "shape" not in fixed:
         side_px = int(np.clip(round(field_nm * 1e-9 / px / 32) * 32, 256, 1024))
-        while not _fits(d["n"], d["R"], d["S"], side_px * px, d["asymmetry"]) and side_px < 1024:
+        while not _fits(d, side_px * px) and side_px < 1024:
             side_px = min(1024, side_px + 64)
         d["shape"] = (side_px, side_px)
     H, W = d["shape"]
     if "R" not in fixed:
-        while not _fits(d["n"], d["R"], d["S"], W * px, d["asymmetry"]) and d["R"] > 3e-9:
+        while not _fits(d, W * px) and d["R"] > 3e-9:
             d["R"] *= 0.9
     if "apex_px" not in fixed:
         row = (0.6 + 0.2 * r0) * H + (r1 - 0.5)

@@ -126,15 +126,16 @@ class TipBody:
     def radius(self, z):
         """Outer radius r(z) (m) of the axisymmetric meridian; -1 below the apex (z < 0)."""
         z = np.asarray(z, float)
-        zc = np.clip(z, 0.0, self.z_join)
-        r = np.power(self.n * self.Q * zc, 1.0 / self.n)
-        u = np.maximum(z - self.z_join, 0.0)
+        r = np.full(z.shape, -1.0)
+        low = (z >= 0) & (z <= self.z_join)
+        r[low] = np.power(self.n * self.Q * z[low], 1.0 / self.n)
+        high = z > self.z_join
+        u = z[high] - self.z_join
         L = self.blend_length
         x = np.minimum(u / L, 1.0)
         ease = L * (x**3 - 0.5 * x**4) + np.maximum(u - L, 0.0)  # integral of smoothstep(u/L)
-        above = self.r_join + self.tangent_slope * u + (self.cone_slope - self.tangent_slope) * ease
-        r = np.where(z > self.z_join, above, r)
-        return np.where(z < 0, -1.0, r)
+        r[high] = self.r_join + self.tangent_slope * u + (self.cone_slope - self.tangent_slope) * ease
+        return r
 
     def flank_radii(self, z):
         """(r_left, r_right) (m): distance of the left and right outer silhouette from the axis."""

@@ -36,7 +36,7 @@ import numpy as np
 from scipy import fft as sfft
 
 __all__ = ["PLANCK", "E_CHARGE", "M_ELECTRON", "C_LIGHT", "REST_ENERGY_EV", "electron_gamma", "electron_beta2",
-           "electron_wavelength", "interaction_constant", "focal_spread", "Optics", "transfer_function",
+           "electron_wavelength", "interaction_constant", "focal_spread", "Optics", "transfer_function", "transfer_block",
            "delocalisation", "image_intensity", "Detector", "detector_mtf", "detect"]
 
 PLANCK = 6.62607015e-34  # J s
@@ -120,28 +120,48 @@ def delocalisation(optics, dx, threshold=1e-3):
     return float(_chi_gradient_length(k[keep], optics).max()) if keep.any() else 0.0
 
 
-def transfer_function(shape, dx, optics, coherent=False):
-    """Objective-lens transfer function A exp(-i chi) E_s E_t on the FFT grid (complex64).
-    ``coherent``: drop the envelopes (tests)."""
+def _band_indices(n, dx, kmax):
+    """FFT-layout indices along one axis of the frequencies |k| <= kmax."""
+    q = min(n // 2, int(math.floor(kmax * n * dx)) + 1)
+    return np.unique(np.r_[0:q + 1, n - q:n] % n)
+
+
+def transfer_block(shape, dx, optics, coherent=False):
+    """The transfer function A exp(-i chi) E_s E_t on the block of FFT indices (iy, ix) that
+    holds the transferred band |k| <= ``band_limit`` (zero outside that disc); complex64."""
     ny, nx = shape
     lam = optics.wavelength
-    ky = sfft.fftfreq(ny, dx).astype(np.float64)[:, None]
-    kx = sfft.fftfreq(nx, dx).astype(np.float64)[None, :]
+    kmax = band_limit(dx, optics)
+    iy, ix = _band_indices(ny, dx, kmax), _band_indices(nx, dx, kmax)
+    ky = sfft.fftfreq(ny, dx)[iy][:, None]
+    kx = sfft.fftfreq(nx, dx)[ix][None, :]
     k2 = ky**2 + kx**2
     chi = math.pi * lam * k2 * (0.5 * optics.cs * lam**2 * k2 - optics.defocus)
-    kmax = band_limit(dx, optics)
-    tf = np.where(k2 <= kmax**2, np.exp(-1j * chi), 0.0)
+    amp = (k2 <= kmax**2).astype(np.float64)
     if not coherent:
-        tf = tf * _envelopes(np.sqrt(k2), optics)
-    return tf.astype(np.complex64)
+        amp *= _envelopes(np.sqrt(k2), optics)
+    tf = (amp * np.cos(chi)).astype(np.float32) - 1j * (amp * np.sin(chi)).astype(np.float32)
+    return iy, ix, tf.astype(np.complex64)
+
+
+def transfer_function(shape, dx, optics, coherent=False):
+    """Objective-lens transfer function A exp(-i chi) E_s E_t on the full FFT grid (complex64).
+    ``coherent``: drop the envelopes (tests)."""
+    iy, ix, blk = transfer_block(shape, dx, optics, coherent)
+    tf = np.zeros(shape, np.complex64)
+    tf[np.ix_(iy, ix)] = blk
+    return tf
 
 
 def image_intensity(exit_wave, dx, optics, coherent=False):
     """|psi_image|^2 on the same grid (periodic: the caller pads), relative to the incident beam."""
     spec = sfft.fft2(exit_wave.astype(np.complex64, copy=False), workers=1)
-    spec *= transfer_function(exit_wave.shape, dx, optics, coherent)
+    iy, ix, blk = transfer_block(exit_wave.shape, dx, optics, coherent)
+    sub = spec[np.ix_(iy, ix)] * blk
+    spec[...] = 0
+    spec[np.ix_(iy, ix)] = sub
     img = sfft.ifft2(spec, workers=1, overwrite_x=True)
-    return (img.real.astype(np.float64) ** 2 + img.imag.astype(np.float64) ** 2)
+    return img.real.astype(np.float64) ** 2 + img.imag.astype(np.float64) ** 2
 
 
 @dataclass(frozen=True)
