@@ -159,7 +159,8 @@ def summary_row(rows):
 
 def print_table(rows):
     hdr = (f"{'category':<26} {'N':>4} {'lost':>4} | {'edge med':>8} {'edge max':>8} | {'|dn|<=.1':>8} "
-           f"{'max|dn|':>7} | {'dF<=3%':>6} | {'n cov':>5} {'F cov':>5} | {'|dn| ideal':>10} | {'t sim':>5} {'t stage':>7}")
+           f"{'max|dn|':>7} | {'dF<=3%':>6} | {'n cov':>5} {'F cov':>5} | {'|dn| ideal':>10} | "
+           f"{'t sim':>5} {'t stage':>7}")
     print(hdr)
     print("-" * len(hdr))
     for label, pred in categories():
@@ -250,8 +251,9 @@ def _progress(r, verbose):
         if r["lost"]:
             print(f"  {r['i']:4d} LOST {r['lost_reason'][:100]}", flush=True)
         else:
-            print(f"  {r['i']:4d} n {r['n']:.2f} dn {r['dn']:+.3f} sn {r['sigma_n']:.3f} edge {r['edge_rms_nm']:.3f} nm "
-                  f"dF {100 * r['pulloff_error']:.1f} % {r['layer']} t {r['t_sim_s']:.1f}+{r['t_stage']:.1f} s", flush=True)
+            print(f"  {r['i']:4d} n {r['n']:.2f} dn {r['dn']:+.3f} sn {r['sigma_n']:.3f} edge {r['edge_rms_nm']:.3f} "
+                  f"nm dF {100 * r['pulloff_error']:.1f} % {r['layer']} t {r['t_sim_s']:.1f}+{r['t_stage']:.1f} s",
+                  flush=True)
     else:
         print(".", end="", flush=True, file=sys.stderr)
 

@@ -100,7 +100,8 @@ def test_envelopes_damp_fringes_and_aperture_cuts():
     for kk in k:
         i = int(np.argmin(np.abs(kx - kk)))
         kr = kx[i]
-        es = math.exp(-((math.pi * o.illumination_angle / lam) ** 2) * (o.cs * lam**3 * kr**3 - o.defocus * lam * kr) ** 2)
+        reach = o.cs * lam**3 * kr**3 - o.defocus * lam * kr
+        es = math.exp(-((math.pi * o.illumination_angle / lam) ** 2) * reach**2)
         et = math.exp(-0.5 * (math.pi * lam * o.focal_spread) ** 2 * kr**4)
         expect = es * et if lam * kr <= o.aperture else 0.0
         assert abs(tf[i]) == pytest.approx(expect, abs=1e-6)
@@ -199,7 +200,8 @@ def test_snr_setting_gives_that_snr_in_the_saved_image():
 
 
 def test_quantisation_clipping_and_dtypes():
-    kw = dict(layer="none", particles=(), shape=(256, 256), pixel_size=0.3e-9, illumination_gradient=0.0, vignetting=0.0)
+    kw = dict(layer="none", particles=(), shape=(256, 256), pixel_size=0.3e-9, illumination_gradient=0.0,
+              vignetting=0.0)
     img8, t8 = simulate(draw_params(2, bits=8, background_level=1.2, **kw))
     assert img8.dtype == np.uint8 and img8.max() == 255
     r_a = int(t8["apex_px"][0])

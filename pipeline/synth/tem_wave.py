@@ -45,7 +45,7 @@ Parameter ranges drawn by ``draw_params`` (every one can be fixed by a keyword)
 | layer | none 30 %, oxide 35 % (1-2 nm), DLC 35 % (2-20 nm) | |
 | layer / core attenuation kappa | oxide 0.2-0.5, DLC 0.05-0.30 | lambda_layer = lambda_core / kappa |
 | core absorption length at 200 kV | 25-80 nm | crystalline Si: mass thickness + Bragg scattering |
-| particles near the apex | half of the draws: 1-3 on one flank (within 20 deg of the image plane), 3-20 nm up, 1-5 nm | a-C, kappa 0.1-0.3 |
+| particles near the apex | half: 1-3 on one flank (20 deg of the image plane), 3-20 nm up, 1-5 nm | a-C |
 | shank contamination | half of the draws: 1-3 blobs 6-24 nm, 30 nm up or more | a-C |
 | accelerating voltage | 100-300 kV | lambda ~ beta^2 (elastic cross-sections ~ 1/beta^2) |
 | defocus | 20 % within 0.1 um of focus, 30 % within 0.5 um, 50 % -2..+2 um | Fresnel fringes ~ sqrt(lambda df) wide |
@@ -54,7 +54,7 @@ Parameter ranges drawn by ``draw_params`` (every one can be fixed by a keyword)
 | pixel size, image side | 0.1-0.5 nm, 256-1024 px (field 60-220 nm) | |
 | rotation, orientation | -15..15 deg, apex down 80 % / up 20 % | |
 | SNR | 5-30 | |
-| bit depth | 8 (35 %), 16 (50 %), float32 (15 %) | 15 % of integer images saturate the vacuum (level 1.02-1.2 x full scale) |
+| bit depth | 8 (35 %), 16 (50 %), float32 (15 %) | 15 % of 8/16-bit: vacuum at 1.02-1.2 x full scale |
 | PSF | Gaussian 0.3-0.8 px + tail 0-15 % over 2-5 px | |
 | read noise, offset | 16 bit: 1-8 DN, 0-300 DN; 8 bit: 0.2-1 DN, 0-8 DN | |
 | illumination | gradient 0-8 % across the field, vignetting 0-10 % | |
@@ -63,9 +63,9 @@ Materials (mean inner potential V0; absorption length lambda as the image shows 
 
 | material | V0 (V) | lambda | source / assumption |
 |---|---|---|---|
-| Si (crystalline core) | 12.1 | 25-80 nm at 200 kV (drawn) | V0 11.5-12.6 V (holography, DFT: Kruse et al. 2003); lambda see below |
+| Si (crystalline core) | 12.1 | 25-80 nm at 200 kV | 11.5-12.6 V (holography, DFT; Kruse et al. 2003) |
 | SiO2 (native oxide) | 10.1 | lambda_core / (0.2-0.5) | amorphous SiO2 ~10 V (holography, 9.5-11 V) |
-| DLC (a-C:H coating) | 9.5 | lambda_core / (0.05-0.30) | a-C 9.09 V at 1.75 g/cm^3 (Wanner et al. 2006); contrast as issue 16 says |
+| DLC (a-C:H coating) | 9.5 | lambda_core / (0.05-0.30) | a-C 9.09 V at 1.75 g/cm^3 (Wanner et al. 2006) |
 | a-C contamination | 8.0 | lambda_core / (0.1-0.3) | hydrocarbon contamination, less dense than a-C: 7-9 V |
 
 Absorption lengths (assumption, order of magnitude): elastic scattering outside a 10 mrad
@@ -105,7 +105,7 @@ from scipy import fft as sfft
 
 from pipeline.synth.tem_wave_geometry import TipBody, place_particle, projected_thickness
 from pipeline.synth.tem_wave_optics import (Detector, Optics, band_limit, delocalisation, detect, electron_beta2,
-                                            electron_wavelength, focal_spread, image_intensity, interaction_constant,
+                                            focal_spread, image_intensity, interaction_constant,
                                             noise_variance_factor)
 
 __all__ = ["MEAN_INNER_POTENTIAL", "ParticleSpec", "TemWaveParams", "draw_params", "simulate", "simulate_intensity",
@@ -411,7 +411,24 @@ def _detector(p, contrast):
 
 
 def simulate(p: TemWaveParams):
-    """Render ``p``: returns (image as saved: uint8 / uint16 / float32, truth dict)."""
+    """Render ``p``: returns (image as saved: uint8 / uint16 / float32, truth dict).
+
+    Truth (SI units; image coordinates (row, col) with pixel centres at integers):
+    pixel_size; shape; orientation ("down": apex at the bottom of the tip); rotation_deg
+    (axis tilt, counter-clockwise as displayed apex-down); apex_px; axis_px (unit vector up
+    the tip); n, Q, R, S (Eq. 1, 2), z_join, cone_slope, asymmetry e; silhouette_px and
+    silhouette_tip ((M, 2): the true OUTER silhouette, coating included, particles not, in
+    the image and as (x, z) in the tip frame, left flank top -> apex -> right flank top);
+    flank_z, flank_r_left, flank_r_right (each flank's distance from the axis at height z,
+    i.e. z(r) per flank); layer, layer_material, layer_thickness, layer_contrast; materials
+    (mean inner potential, absorption length, phase per length); particles (kind "apex" /
+    "shank", flank, height, centre_px, semi_axes, protrusion beyond the silhouette);
+    particle_flank (the flank carrying the apex particles, or None); optics (kv, wavelength,
+    interaction constant, defocus, cs, aperture, illumination angle, focal spread,
+    fringe_width = sqrt(lambda |df|)); detector; dose (electrons per pixel in vacuum); snr,
+    reference_contrast, noise_sigma (DN), vacuum_level (DN), saturated_fraction; sim (grid);
+    params (every input); intensity (the noise-free image relative to vacuum, not saved to JSON).
+    """
     if p.orientation not in ("down", "up"):
         raise ValueError(f"orientation must be 'down' or 'up', got {p.orientation!r}")
     if p.layer not in LAYER_MATERIAL:
@@ -454,8 +471,8 @@ def make_truth(p, body, grid, contrast, z_ref, det, dose, sigma_vac, img):
         r_, c_ = _image_coords(pp.centre[0], pp.centre[2], p)
         parts.append(dict(kind=s.kind, flank="right" if pp.flank > 0 else "left", height=float(s.height),
                           azimuth_deg=float(s.azimuth_deg), semi_axes=[float(v) for v in s.semi_axes],
-                          sink=float(s.sink), centre_tip=[float(v) for v in pp.centre], centre_px=[float(r_), float(c_)],
-                          protrusion=_protrusion(body, pp), material="aC"))
+                          sink=float(s.sink), centre_tip=[float(v) for v in pp.centre],
+                          centre_px=[float(r_), float(c_)], protrusion=_protrusion(body, pp), material="aC"))
     apex_flanks = sorted({q["flank"] for q in parts if q["kind"] == "apex"})
     lam_abs = p.absorption_lengths()
     pot = p.potentials()
@@ -465,17 +482,20 @@ def make_truth(p, body, grid, contrast, z_ref, det, dose, sigma_vac, img):
     full = {8: 255, 16: 65535}.get(p.bits)
     sat = float(np.mean(img >= full)) if full else 0.0
     o = p.optics()
+    has_layer = p.layer != "none"
+    flank = apex_flanks[0] if len(apex_flanks) == 1 else (None if not apex_flanks else "both")
     return dict(
         simulator="pipeline.synth.tem_wave", seed=int(p.seed), params=_params_dict(p),
         pixel_size=p.pixel_size, shape=[H, W], orientation=p.orientation, rotation_deg=p.rotation_deg,
         apex_px=[float(p.apex_px[0]), float(p.apex_px[1])], axis_px=axis.tolist(),
         n=p.n, Q=p.Q, R=p.R, S=p.S, z_join=p.z_join, cone_slope=body.cone_slope, asymmetry=p.asymmetry,
-        layer=p.layer, layer_material=LAYER_MATERIAL[p.layer], layer_thickness=p.layer_thickness if p.layer != "none" else 0.0,
-        layer_contrast=p.layer_contrast if p.layer != "none" else 0.0, materials=materials,
-        particles=parts, particle_flank=apex_flanks[0] if len(apex_flanks) == 1 else (None if not apex_flanks else "both"),
+        layer=p.layer, layer_material=LAYER_MATERIAL[p.layer], layer_thickness=p.layer_thickness if has_layer else 0.0,
+        layer_contrast=p.layer_contrast if has_layer else 0.0, materials=materials,
+        particles=parts, particle_flank=flank,
         optics=dict(kv=o.kv, wavelength=o.wavelength, interaction_constant=sigma, defocus=o.defocus, cs=o.cs,
                     aperture=o.aperture, illumination_angle=o.illumination_angle, focal_spread=o.focal_spread,
-                    cc=p.cc, energy_spread_ev=p.energy_spread_ev, fringe_width=math.sqrt(o.wavelength * abs(o.defocus))),
+                    cc=p.cc, energy_spread_ev=p.energy_spread_ev,
+                    fringe_width=math.sqrt(o.wavelength * abs(o.defocus))),
         detector=dict(bits=p.bits, gain=det.gain, offset=det.offset, read_noise=det.read_noise, psf_sigma=det.psf_sigma,
                       tail_weight=det.tail_weight, tail_length=det.tail_length),
         dose=dose, snr=p.snr, reference_contrast=contrast, reference_height=z_ref, noise_sigma=sigma_vac,

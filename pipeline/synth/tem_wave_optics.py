@@ -36,7 +36,8 @@ import numpy as np
 from scipy import fft as sfft
 
 __all__ = ["PLANCK", "E_CHARGE", "M_ELECTRON", "C_LIGHT", "REST_ENERGY_EV", "electron_gamma", "electron_beta2",
-           "electron_wavelength", "interaction_constant", "focal_spread", "Optics", "transfer_function", "transfer_block",
+           "electron_wavelength", "interaction_constant", "focal_spread", "Optics", "transfer_function",
+           "transfer_block",
            "delocalisation", "image_intensity", "Detector", "detector_mtf", "detect"]
 
 PLANCK = 6.62607015e-34  # J s

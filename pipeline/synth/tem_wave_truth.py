@@ -3,7 +3,8 @@
 
 Metrics (SI units):
 - edge: distance of every extracted edge point (``TipProfile.edge_px``) that stage 2 fits
-  (within 6 nm of the stage's own apex) to the true OUTER silhouette (coating included, contamination excluded), measured in the image
+  (within 6 nm of the stage's own apex) to the true OUTER silhouette (coating included,
+  contamination excluded), measured in the image
   plane to the nearest segment of the dense true curve: RMS overall and per flank (by the
   side of the true axis a point lies on), signed mean (+ = outside the tip), max;
 - apex: distance of the reported apex from the true one, and its component along the true
@@ -246,7 +247,8 @@ def plot_comparison(data, truth, profile, metrics, path, half_height=25e-9):
                  f"{metrics['edge_rms'] * 1e9:.2f} nm (bias {metrics['edge_bias'] * 1e9:+.2f}), pull-off "
                  f"{100 * metrics['pulloff_error_signed']:+.1f} %" + ("  LOST" if metrics.get("lost") else ""))
     p = truth["params"]
-    sub = (f"{p['layer']} {p['layer_thickness'] * 1e9:.1f} nm, e {p['asymmetry']:+.3f}, df {p['defocus'] * 1e6:+.2f} um, "
+    sub = (f"{p['layer']} {p['layer_thickness'] * 1e9:.1f} nm, e {p['asymmetry']:+.3f}, "
+           f"df {p['defocus'] * 1e6:+.2f} um, "
            f"{p['kv']:.0f} kV, px {p['pixel_size'] * 1e9:.2f} nm, SNR {p['snr']:.0f}, {p['bits'] or 'float'} bit, "
            f"saturated {truth['saturated_fraction']:.0%}")
     ax.set_title(title + "\n" + sub, fontsize=7)
