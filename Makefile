@@ -33,7 +33,7 @@ test-all: $(BIN)/.installed     ## include the slow tests
 # Not part of `make test`: a single-node SLURM on localhost (scripts/slurm_local.sh; needs root and
 # Debian's packages, which the first line installs where it can) runs the sample through
 # profiles/slurm, with and without job accounting, and provokes a job over its memory, one over
-# its time and a cancelled one (~10 min). Without root or the packages the tests skip, saying why.
+# its time and a cancelled one (~15 min). Without root or the packages the tests skip, saying why.
 test-cluster: $(BIN)/.installed ## the SLURM profile on a local single-node SLURM (root, Debian packages)
 	-scripts/slurm_local.sh install --accounting
 	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"

@@ -4,7 +4,7 @@
 #   scripts/slurm_local.sh install [--accounting]   apt-get the Debian packages (root)
 #   scripts/slurm_local.sh start [--accounting]     munged, slurmctld, slurmd (+ MariaDB and slurmdbd)
 #   scripts/slurm_local.sh status                   which daemons run, sinfo
-#   scripts/slurm_local.sh env                      prints `export SLURM_CONF=...` (eval it)
+#   scripts/slurm_local.sh env                      prints `export SLURM_CONF=...` (for other hosts; not needed here)
 #   scripts/slurm_local.sh stop [--purge]           cancels its jobs, stops its daemons (--purge: deletes its state)
 #
 # Needs root (slurmd starts the jobs' processes; the daemons run as root) and Debian's packages

@@ -10,7 +10,8 @@ turned into SLURM requests with a safety margin:
 
 - ``runtime`` (minutes) = ceil((STARTUP_S + RUNTIME_FACTOR * s_max) / 60): a cluster job first
   starts Snakemake twice (the job step and the job itself parse the workflow: STARTUP_S = 30 s,
-  about twice the 8-15 s a cluster job of this workflow spends outside its stage), and real images
+  several times the 4-8 s a cluster job of this workflow spent outside its stage on the local test
+  cluster), and real images
   and curve sets may be several times the sample's size or the node slower (RUNTIME_FACTOR = 10).
   At the sample's size every rule gets the 1-minute minimum: start-up dominates;
 - ``mem_mb`` = MEM_FACTOR * max_rss + SNAKEMAKE_MB, rounded up to 100 MB: the job's memory limit

@@ -2,7 +2,7 @@
 
 Not part of the default suite (`make test`): it needs root and Debian's packages slurmctld slurmd
 slurm-client munge slurmdbd mariadb-server (`sudo scripts/slurm_local.sh install --accounting`)
-and the cluster extra (`pip install -e ".[cluster]"`), and takes ~10 min on 2 cores. Elsewhere
+and the cluster extra (`pip install -e ".[cluster]"`), and takes ~15 min on 2 cores. Elsewhere
 every test is skipped with the reason.
 
 It starts the cluster with scripts/slurm_local.sh (first without job accounting, then with
