@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 CORES  ?= 2
 
-.PHONY: run test test-all samples bench lint report clean
+.PHONY: run test test-all test-cluster samples bench lint report clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,15 @@ test: $(BIN)/.installed         ## the default (fast) test suite, then the TEM t
 
 test-all: $(BIN)/.installed     ## include the slow tests
 	$(BIN)/pytest -m "slow or not slow"
+
+# Not part of `make test`: a single-node SLURM on localhost (scripts/slurm_local.sh; needs root and
+# Debian's packages, which the first line installs where it can) runs the sample through
+# profiles/slurm, with and without job accounting, and provokes a job over its memory, one over
+# its time and a cancelled one (~15 min). Without root or the packages the tests skip, saying why.
+test-cluster: $(BIN)/.installed ## the SLURM profile on a local single-node SLURM (root, Debian packages)
+	-scripts/slurm_local.sh install --accounting
+	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"
+	$(BIN)/pytest -rs -v tests_cluster
 
 samples: $(BIN)/.installed      ## regenerate data_samples/ and config/tips/ from the seeded generator
 	$(BIN)/python -m pipeline make-samples --out data_samples --config-dir config/tips

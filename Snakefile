@@ -2,6 +2,8 @@
 # Run:  snakemake --cores 2        (settings: config/config.yaml, one YAML per tip in config/tips/)
 from snakemake.utils import min_version
 
+from pipeline.workflow_support import report_failed_cluster_jobs
+
 min_version("9.0")
 
 
@@ -27,3 +29,9 @@ rule all:
         expand(f"{RESULTS}/{{tip}}/adhesion_map.png", tip=TIPS),
         [f"{RESULTS}/{t}/forces/{iv}.png" for t in TIPS for iv in INTERVALS[t]],
     default_target: True
+
+
+# On a cluster: say for each failed SLURM job why it ended (time, memory, cancelled) and which
+# rule, tip and interval it was running (Snakemake names only the group for grouped jobs).
+onerror:
+    report_failed_cluster_jobs(log)
