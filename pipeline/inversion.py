@@ -205,6 +205,8 @@ def load_forces(path) -> dict:
         # files written before InvOLS was per interval: one value for the whole tip
         shared = bool(_get(cal, "invols_shared", True)) if cal else True
         inv_method = str(_get(cal, "invols_method", "")) if cal else ""
+        contact_range = np.asarray(_get(cal, "contact_fit_deflection", np.full(2, np.nan)), float) if cal else np.full(2, np.nan)
+        contact_segment = str(_get(cal, "contact_segment", "approach")) if cal else "approach"
         inv_check = str(_get(cal, "invols_check", "")) if cal else ""
         inv_contact = float(_get(cal, "invols_contact", np.nan)) if cal else np.nan
         u_inv_contact = float(_get(cal, "u_invols_contact", np.nan)) if cal else np.nan
@@ -224,6 +226,8 @@ def load_forces(path) -> dict:
         "u_cal_rel": float(u_cal_rel) if u_cal_rel is not None else np.nan,
         "invols_shared": shared,
         "invols_method": inv_method,
+        "contact_fit_deflection": contact_range,
+        "contact_segment": contact_segment,
         "invols_check": inv_check,
         "invols_contact": inv_contact,
         "u_invols_contact": u_inv_contact,
@@ -437,6 +441,27 @@ def interval_calibration_factor(ss, sysd, forces, size):
     return sysd["k_factor"] * fi
 
 
+def correct_contact_compliance(forces: dict, n: float, Q: float, E_star: float):
+    """Forces of an interval whose InvOLS came from its own contact slopes, corrected for the
+    tip's finite contact stiffness (``pipeline.forces.contact_compliance``): F_p, its SEM and
+    InvOLS divided by c, half of c - 1 added (relative) to the InvOLS uncertainty.  Returns
+    (forces, c); c = 1 (forces unchanged) for other InvOLS sources or an unknown shape."""
+    from pipeline.forces.contact_compliance import contact_compliance_factor
+
+    if forces.get("invols_method") != "contact" or forces.get("invols_shared", True):
+        return forces, 1.0
+    F_adh = forces["F_p_mean"]  # DMT: the adhesion outside the contact adds to the load on either segment
+    c = contact_compliance_factor(forces["k"], forces.get("contact_fit_deflection", (np.nan, np.nan)), F_adh, n, Q, E_star)
+    if c == 1.0:
+        return forces, 1.0
+    inv = forces["invols"] / c
+    u_inv = float(np.hypot(np.nan_to_num(forces["u_invols"]) / c, 0.5 * (c - 1.0) * inv))
+    out = {**forces, "F_p_mean": forces["F_p_mean"] / c, "F_p_sem": forces["F_p_sem"] / c, "F_p_std": forces["F_p_std"] / c,
+           "F_p_curves": np.asarray(forces["F_p_curves"]) / c, "invols": inv, "u_invols": u_inv,
+           "contact_compliance_factor": c}
+    return out, c
+
+
 def draw_interval(ss, fit, forces, size):
     rng = np.random.default_rng(ss)
     fp = _draw_mean(rng, forces["F_p_mean"], forces["F_p_sem"], forces["n_curves"], size)
@@ -528,6 +553,8 @@ def run_inversion(
         if bad_fit and n_flag in ("ok", "n_clipped_to_2"):
             n_c, lnq_c, n_flag = np.nan, np.nan, "fit_flagged"  # flagged in stage 2: not silently used
         q_c = float(np.exp(lnq_c)) if np.isfinite(lnq_c) else np.nan
+        fo, compliance = correct_contact_compliance(fo, n_c, q_c, float(E_star))
+        forces[nm] = fo
         dr = draw_interval(children[1 + i], fit, fo, S)
         dr["cal_factor"] = interval_calibration_factor(children[1 + len(names) + i], sysd, fo, S)
         if n_flag not in ("ok", "n_clipped_to_2"):
@@ -537,6 +564,9 @@ def run_inversion(
         q_s = np.exp(dr["ln_Q"])[:, None]
         e_s = sysd["E_star"][:, None]
         notes = list(fo["warnings"]) + ([shape_note] if shape_note else [])
+        if compliance > 1.001:
+            notes.append(f"InvOLS from the contact slopes corrected for the tip's contact stiffness (Sneddon, DMT load): "
+                         f"F_p divided by {compliance:.4f}, half the correction added to its uncertainty")
         if not (np.isfinite(fo["F_p_sem"]) and fo["F_p_sem"] > 0):
             notes.append("no statistical uncertainty of F_p (fewer than 2 curves): only calibration/fit/E* propagated")
         if n_flag == "n_clipped_to_2":
@@ -629,6 +659,8 @@ def run_inversion(
             write_dataset(g, "invols_contact", fo["invols_contact"], "m/V", "InvOLS from the interval's own contact slopes")
             write_dataset(g, "u_invols_contact", fo["u_invols_contact"], "m/V", "its uncertainty")
             write_dataset(g, "invols_check", fo["invols_check"], "1", "'' or what disagrees with the contact slope")
+            write_dataset(g, "contact_compliance_factor", fo.get("contact_compliance_factor", 1.0), "1",
+                          "contact-slope InvOLS and F_p divided by this (the tip's finite contact stiffness; 1: not applied)")
             gs = create_group(g, "draws")
             dr = res["draws"]
             write_dataset(gs, "F_p_mean", dr["F_p_mean"], "N", "sampled mean F_p (before the calibration factor)")

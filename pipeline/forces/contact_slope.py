@@ -16,6 +16,8 @@ class ContactSlope:
     u_invols: float  # m/V, from the fit
     slope: float  # V/m
     n_points: int
+    fit_lo: float = float("nan")  # deflection above the baseline (V) at the lower end of the fit range
+    fit_hi: float = float("nan")  # ... and at its upper end
 
 
 MIN_CONTACT_POINTS = 10
@@ -65,7 +67,7 @@ def contact_slope(z, d, *, fit_range=(0.2, 0.8), path="") -> ContactSlope:
         if diff > MAX_NONLINEARITY * line.slope and diff > NONLINEARITY_SIGMA * np.hypot(a.u_slope, b.u_slope):
             raise ForceCurveError(path, f"contact part not linear: slope {a.slope * 1e-9:.4g} V/nm in its lower half, "
                                         f"{b.slope * 1e-9:.4g} V/nm in its upper half (soft sample or drift): no InvOLS")
-    return ContactSlope(1.0 / line.slope, line.u_slope / line.slope**2, line.slope, line.n)
+    return ContactSlope(1.0 / line.slope, line.u_slope / line.slope**2, line.slope, line.n, float(lo), float(hi))
 
 
 def invols_from_curves(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), segment="approach"):

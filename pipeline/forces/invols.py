@@ -53,6 +53,16 @@ class ContactInvols:
     u_fit: np.ndarray  # m/V, fit standard error per curve
     reason: list  # '' where the curve gave a value
     floor: float  # relative systematic uncertainty
+    fit_range_V: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # per curve: deflection (V) at the ends of the fit
+
+    @property
+    def fit_range_m(self) -> np.ndarray:
+        """Mean deflection above the baseline (m) at the two ends of the contact fit (the load
+        range the slope was measured over; ``contact_compliance`` needs it)."""
+        ok = self.ok & np.all(np.isfinite(self.fit_range_V), axis=1) if self.fit_range_V.size else self.ok[:0]
+        if not np.any(ok):
+            return np.full(2, np.nan)
+        return np.mean(self.fit_range_V[ok] * self.invols[ok, None], axis=0)
 
     @property
     def ok(self) -> np.ndarray:
@@ -96,9 +106,10 @@ def measure_contact_invols(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), se
     """Contact-slope InvOLS of every curve: in volts as recorded, or converted back to volts with
     the file's own InvOLS (instrument files in metres: a stale file InvOLS is then caught);
     curves in metres without one are skipped with the reason."""
-    files, vals, us, reasons = [], [], [], []
+    files, vals, us, reasons, ranges = [], [], [], [], []
     for c in curves:
         files.append(c.path)
+        ranges.append((np.nan, np.nan))
         if c.defl_units != "V" and c.invols is None:
             vals.append(np.nan), us.append(np.nan), reasons.append("deflection recorded in metres with no InvOLS in the file")
             continue
@@ -106,9 +117,11 @@ def measure_contact_invols(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), se
         try:
             cs = contact_slope(z, c.deflection_volts(segment), fit_range=fit_range, path=c.path)
             vals.append(cs.invols), us.append(cs.u_invols), reasons.append("")
+            ranges[-1] = (cs.fit_lo, cs.fit_hi)
         except ForceCurveError as exc:
             vals.append(np.nan), us.append(np.nan), reasons.append(exc.reason)
-    return ContactInvols(files, np.array(vals, float), np.array(us, float), reasons, float(floor))
+    return ContactInvols(files, np.array(vals, float), np.array(us, float), reasons, float(floor),
+                         np.array(ranges, float).reshape(-1, 2))
 
 
 def _method(cant: dict, interval: dict, file_invols) -> str:

@@ -171,6 +171,9 @@ def _contact_extrapolation(z, dc, i_j, fit_points, i_rise, robust=False):
     return -v, u, step, i_j
 
 
+UNRESOLVED_ROUNDING = 2.0  # samples
+
+
 def _rounded_hinge(s, y, n_corner=120, n_round=14):
     """Two straight arms joined by a rounded corner (a hyperbola with the arms as asymptotes):
     y = a + b u + c_r sqrt(u^2 + c^2), u = s - s_k.  c = 0 is a sharp corner (a Dugdale-like
@@ -179,11 +182,12 @@ def _rounded_hinge(s, y, n_corner=120, n_round=14):
     the rounding c are searched on grids, (a, b, c_r) by least squares.  Returns (lowest value of
     the fitted curve over the window, its standard error, rss, c).  The standard error includes
     half the spread of that value over the (s_k, c) that fit within Delta chi^2 < 1 of the best:
-    a rounding the noise cannot resolve widens it.  The lowest point of the curve, not the arms'
-    corner, is read even where the rounding is narrow: a rounding the data cannot resolve would
-    otherwise read the corner of two extrapolated arms (10 % deep on a stiff lever passing a
-    smooth maximum); the cost is that an anti-alias filter's rounding of a sharp corner reads
-    shallow by about a third of a sample's change (~1 % at 2 nm of deflection)."""
+    a rounding the noise cannot resolve widens it.  The lowest point of the curve is read where the
+    rounding spans more than UNRESOLVED_ROUNDING samples; a narrower one may be the anti-alias
+    filter's or the sampling's, so there the midpoint between the curve's lowest point and the arms'
+    corner is read, half their difference added to the uncertainty (reading the corner alone
+    was 10 % deep on a stiff lever passing a smooth maximum, the lowest point alone 3 % shallow
+    on a filtered Dugdale corner)."""
     scale = abs(float(s[-1] - s[0])) / max(s.size - 1, 1) or 1.0
     s = (np.asarray(s, float) - float(s[0])) / scale  # in sample steps: a well-conditioned basis
     ds, span = 1.0, float(s[-1])
@@ -203,22 +207,31 @@ def _rounded_hinge(s, y, n_corner=120, n_round=14):
     vals = coef[:, :1] + coef[:, 1:2] * uu + coef[:, 2:3] * np.sqrt(uu * uu + C[:, None] ** 2)
     jmin = np.argmin(vals, axis=1)
     low = vals[np.arange(K.size), jmin]
+    # a rounding within UNRESOLVED_ROUNDING samples may be the anti-alias filter's or the
+    # sampling's rather than the force law's: the largest deflection then lies between the curve's
+    # lowest point and its arms' corner (their asymptotes meet at u = 0, y = a); the midpoint is
+    # read, half the difference enters the uncertainty
+    narrow = (C <= UNRESOLVED_ROUNDING * ds) & (coef[:, 2] > 0)
+    half_gap = np.where(narrow, 0.5 * (low - coef[:, 0]), 0.0)
+    low = low - half_gap
     g = int(np.argmin(rss))
     sigma2 = rss[g] / max(s.size - 5, 1)
     row = np.array([1.0, uu[g, jmin[g]], np.sqrt(uu[g, jmin[g]] ** 2 + C[g] ** 2)])
     var = sigma2 * float(row @ np.linalg.solve(AtA_r[g], row))
     near = (rss - rss[g]) / max(sigma2, 1e-300) < 1.0
     spread = 0.5 * float(np.ptp(low[near])) if near.sum() > 1 else 0.0
-    return float(low[g]), float(np.hypot(np.sqrt(max(var, 0.0)), spread)), float(rss[g]), float(C[g]) * scale
+    u = float(np.sqrt(max(var, 0.0) + spread**2 + half_gap[g] ** 2))
+    return float(low[g]), u, float(rss[g]), float(C[g]) * scale
 
 
 def _transition_start(dc, i_rise, i_min, step_c, noise):
     """The last sample before the jump's transition: walking back from the largest rise
-    ``i_rise``, samples that rose from their predecessor by more than max(2.5 x the contact line's
+    ``i_rise``, samples that rose from their predecessor by more than max(1.5 x the contact line's
     change per sample ``step_c``, 4 x noise) belong to the jump (an anti-alias filter spreads it
-    over several samples); a detaching branch rises no faster than the contact line fell."""
+    over several samples); a detaching branch near its corner rises about as fast as the contact
+    line fell."""
     j = i_rise
-    while j - 1 > i_min and dc[j] - dc[j - 1] > max(2.5 * step_c, 4.0 * noise):
+    while j > i_min and dc[j] - dc[j - 1] > max(1.5 * step_c, 4.0 * noise):
         j -= 1
     return j
 

@@ -182,6 +182,10 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
                  "InvOLS from the contact slopes of this interval's own curves (mean)"),
                 ("u_invols_contact", inv.contact.u if inv.contact else np.nan, "m/V", "its standard error with the systematic floor"),
                 ("n_invols_contact", inv.contact.n if inv.contact else 0, "1", "curves that gave a contact slope"),
+                ("contact_fit_deflection", inv.contact.fit_range_m if inv.contact else np.full(2, np.nan), "m",
+                 "mean deflection above the baseline at the two ends of the contact-slope fit (its load range: "
+                 "the inversion corrects a contact InvOLS for the tip's finite contact stiffness over it)"),
+                ("contact_segment", str(cant["contact_segment"]), "1", "segment the contact slopes were fitted on"),
                 ("invols_check_z", inv.check_z, "1", "(InvOLS in use - contact) / combined uncertainty (NaN: not checked)"),
                 ("invols_check", inv.check, "1", "'' or what disagrees (a forgotten remount)"),
                 ("k_source", cal.k_source, "1", "where k came from"), ("invols_source", inv.source, "1", "where InvOLS came from")):

@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy import signal
+from scipy.fft import next_fast_len
 from scipy.special import gamma
 
 K_B = 1.380649e-23  # J/K
@@ -248,12 +249,13 @@ def _ring(t, jumps, f0, Q):
 
 def _thermal(n, dt, lever: Lever, rng):
     """Brownian deflection (m) of the free lever: SHO spectrum with variance k_B T / k."""
-    f = np.fft.rfftfreq(n, dt)
+    m = next_fast_len(n, real=True)  # an FFT of a length with a large prime factor takes seconds
+    f = np.fft.rfftfreq(m, dt)
     f0, Q = lever.f0, lever.Q
     H = f0**2 / (f0**2 - f**2 + 1j * f * f0 / Q)
     X = (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) * np.abs(H)
     X[0] = 0.0
-    x = np.fft.irfft(X, n)
+    x = np.fft.irfft(X, m)[:n]
     sd = np.std(x)
     return x * (np.sqrt(K_B * lever.temperature / lever.k) / sd if sd > 0 else 0.0)
 
@@ -282,7 +284,11 @@ def simulate_curve(it: Interaction, lever: Lever, inst: Instrument, *, seed=0, h
     n_app = int(np.ceil(T_ramp * fi))
     n_dw = int(round(inst.dwell * fi))
     # retract until the lever has been free for ``retract_extra`` (the pull-off is at the contact branch's fold)
-    z_ret_end = min(0.0, float(br.z[i0:i1][-1])) - inst.retract_extra
+    # (without an instability the lever detaches smoothly: "free" where the attraction is < 1 % of F_p)
+    Dseg = br.D[i0:i1]
+    free = np.flatnonzero((Dseg > 0) & (np.abs(attraction(Dseg, it)) < 0.01 * it.F_p))
+    z_detach = float(br.z[i0:i1][free[0]]) if free.size else float(br.z[i0:i1][-1])
+    z_ret_end = min(0.0, z_detach) - inst.retract_extra
     n_ret = int(np.ceil((z_trig - z_ret_end) / inst.velocity * fi))
     z_app = np.linspace(0.0, z_trig, n_app, endpoint=False)
     z_dw = np.full(n_dw, z_trig)
@@ -298,8 +304,9 @@ def simulate_curve(it: Interaction, lever: Lever, inst: Instrument, *, seed=0, h
     jumps = [(t[j + 1], d[j + 1] - d[j]) for j in np.flatnonzero(np.abs(np.diff(d)) > max(20.0 * ramp_step, 0.02e-9))]
     d_mech = d + _ring(t, jumps, lever.f0, lever.Q)
     # thermal motion: free lever k_B T/k; pinned in contact k_B T/(k + k_contact)
-    Fc, dFc = tip_force(D0 - z + d, it)
-    kc = np.where(contact, np.maximum(-dFc, 0.0), 0.0)
+    kc = np.zeros(d.size)
+    pressed = contact & (D0 - z + d < 0)  # the Sneddon stiffness 2 E* a where the tip indents
+    kc[pressed] = repulsion(-(D0 - z[pressed] + d[pressed]), it.n, it.Q, it.E_star)[1]
     th = _thermal(d.size, dt, lever, rng) * np.sqrt(k / (k + kc))
     drift = inst.drift_rate * t + (np.cumsum(rng.standard_normal(d.size)) * inst.drift_walk * np.sqrt(dt) if inst.drift_walk else 0.0)
     sig = d_mech + th + drift
