@@ -129,8 +129,9 @@ def censored_percentiles(values, side, pcts, lo_edge, hi_edge):
     return np.array(out)
 
 
-def _cov_inverse(Y, ridge=1e-10):
-    """Per-h inverse covariance of Y (S, H, I) over samples with all I finite."""
+def _cov_inverse(Y, ridge=1e-10, tau2=0.0):
+    """Per-h inverse covariance of Y (S, H, I) over samples with all I finite, with ``tau2``
+    added to every interval's variance (a between-interval random effect)."""
     S, H, I = Y.shape
     P = np.full((H, I, I), np.nan)
     for j in range(H):
@@ -138,11 +139,11 @@ def _cov_inverse(Y, ridge=1e-10):
         if rows.sum() < max(MIN_SAMPLES_FOR_COV, I + 2):
             continue
         if I == 1:
-            v = np.var(Y[rows, j, 0], ddof=1)
+            v = np.var(Y[rows, j, 0], ddof=1) + tau2
             P[j] = 1.0 / max(v, 1e-300) if v > 0 else np.nan
             continue
         C = np.atleast_2d(np.cov(Y[rows, j, :], rowvar=False))
-        C = C + np.eye(I) * (ridge + 1e-9 * np.trace(C) / I)
+        C = C + np.eye(I) * (ridge + 1e-9 * np.trace(C) / I + tau2)
         try:
             P[j] = np.linalg.inv(C)
         except np.linalg.LinAlgError:
@@ -222,8 +223,13 @@ def _ln(x):
 
 
 # --------------------------------------------------------------------- the analysis
-def analyse_law(inv: dict, law: str) -> dict:
-    """Reference, crossings and global estimate for one traction law (pure function)."""
+INCONSISTENCY_MODELS = ("random_effects", "birge")
+
+
+def analyse_law(inv: dict, law: str, inconsistency: str = "random_effects") -> dict:
+    """Reference, crossings and global estimate for one traction law (pure function).
+    ``inconsistency``: how intervals that disagree beyond their uncertainties widen the
+    interval of h and W_A (``random_effects``, the default, or ``birge``; module doc)."""
     h = inv["h"]
     x = np.log(h)
     order = inv["order"]
@@ -364,8 +370,86 @@ def analyse_law(inv: dict, law: str) -> dict:
     g["status"] = "ok"
     g["h"] = float(np.exp(xs[0]))
     g["W_A"] = float(np.exp(ms[0]))
-    _widen_if_inconsistent(g, xs[0], ms[0], xss_c, mss, edge_s, x)
+    if inconsistency == "birge":
+        _widen_if_inconsistent(g, xs[0], ms[0], xss_c, mss, edge_s, x)
+    else:
+        _random_effects_if_inconsistent(g, x, Yc, Ys)
     return res
+
+
+def _min_chi2(x, Yc, P):
+    mc, chic = gls_chi2(Yc, P)
+    xs, ms, chis, edge = _argmin_refined(x, chic[None, :], mc[None, :])
+    return float(chis[0]), float(xs[0]), float(ms[0]), int(edge[0])
+
+
+def between_interval_variance(x, Yc, Ys, dof, iters=60):
+    """Paule-Mandel tau^2 (in (ln W_A)^2): the variance that, added to every interval's, brings the
+    global fit's chi^2_min down to its degrees of freedom (0 where it is already at or below)."""
+    chi0 = _min_chi2(x, Yc, _cov_inverse(Ys))[0]
+    if dof <= 0 or not np.isfinite(chi0) or chi0 <= dof:
+        return 0.0
+    lo, hi = -14.0, 0.0  # ln tau^2: tau from 0.1 % to 100 % of W_A
+    if _min_chi2(x, Yc, _cov_inverse(Ys, tau2=np.exp(hi)))[0] > dof:
+        return float(np.exp(hi))
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        if _min_chi2(x, Yc, _cov_inverse(Ys, tau2=np.exp(mid)))[0] > dof:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-3:
+            break
+    return float(np.exp(hi))
+
+
+def _random_effects_if_inconsistent(g, x, Yc, Ys):
+    """Where the intervals disagree more than their uncertainties allow (chi^2_min > dof), a
+    between-interval random effect: every interval's ln W_A(h) is given an extra, independent
+    offset of variance tau^2 (Paule-Mandel: chi^2_min = dof with it; DerSimonian & Laird 1986,
+    Paule & Mandel 1982), constant over h -- an InvOLS not remeasured after a remount, a force
+    bias, a contaminated reference, each moving one interval's whole W_A(h) curve.  The global h
+    and W_A are re-estimated with it (an interval whose own uncertainty is small no longer
+    outweighs the rest: a wrong reference cannot pin W_A alone) and the Monte Carlo draws the
+    offsets too, so the intervals widen by what the disagreement needs.  Unlike a Birge scaling,
+    which keeps the relative weights, this lets the consistent majority decide the estimate."""
+    from scipy.special import chdtrc
+
+    if g["dof"] <= 0:
+        g["birge_ratio"] = np.nan
+        g["tau"] = np.nan
+        g["note"] += ("one worn interval: whether the intervals agree cannot be tested, the interval of h rests on "
+                      "the stated uncertainties alone. ")
+        return
+    g["p_value"] = float(chdtrc(g["dof"], g["chi2_min"]))
+    g["birge_ratio"] = birge_ratio(g["chi2_min"], g["dof"])
+    tau2 = between_interval_variance(x, Yc, Ys, g["dof"])
+    g["tau"] = float(np.sqrt(tau2))
+    if tau2 <= 0.0:
+        return
+    P = _cov_inverse(Ys, tau2=tau2)
+    chi, xs, ms, edge = _min_chi2(x, Yc, P)
+    S, _, I = Ys.shape
+    # the random offsets of the Monte Carlo: seeded by the data's size (deterministic per file)
+    eps = np.sqrt(tau2) * np.random.default_rng([S, I, 0x7A0]).standard_normal((S, 1, I))
+    ms_s, chi_s = gls_chi2(Ys + eps, P)
+    xss, mss, _, edge_s = _argmin_refined(x, chi_s, ms_s)
+    xss_c = np.where(edge_s != 0, np.nan, xss)
+    g["h_pcts_unscaled"], g["W_pcts_unscaled"] = g["h_pcts"], g["W_pcts"]
+    g["h_unscaled"], g["W_A_unscaled"] = g["h"], g["W_A"]
+    if edge == 0 and np.isfinite(xs):
+        g["h"], g["W_A"] = float(np.exp(xs)), float(np.exp(ms))
+    g["h_samples"], g["W_samples"] = np.exp(xss), np.exp(mss)
+    g["h_pcts"] = np.exp(censored_percentiles(xss_c, edge_s, CI_PCTS, x[0], x[-1]))
+    g["W_pcts"] = np.exp(censored_percentiles(mss, np.zeros_like(edge_s), CI_PCTS, -np.inf, np.inf))
+    widen = lambda p, p0: float(np.log(p[-1] / p[0]) / np.log(p0[-1] / p0[0]))  # noqa: E731
+    g["ci_widening_h"] = widen(g["h_pcts"], g["h_pcts_unscaled"]) if np.all(np.isfinite(g["h_pcts"][[0, -1]])) else np.inf
+    g["ci_widening_W"] = widen(g["W_pcts"], g["W_pcts_unscaled"])
+    verdict = "mutually inconsistent" if g["p_value"] < 0.05 else "scattered a little more than their uncertainties allow"
+    g["note"] += (f"intervals {verdict} (chi2 = {g['chi2_min']:.3g} for {g['dof']} dof, p = {g['p_value']:.2g}): a "
+                  f"between-interval scatter of {100 * g['tau']:.1f} % in W_A was added to every interval (random effects), "
+                  f"which moved h from {g['h_unscaled'] * 1e9:.3g} to {g['h'] * 1e9:.3g} nm and widened the 95 % interval of h "
+                  f"by {g['ci_widening_h']:.2f}x and of W_A by {g['ci_widening_W']:.2f}x. ")
 
 
 def birge_ratio(chi2_min: float, dof: int) -> float:
@@ -450,7 +534,7 @@ def reference_at(res: dict, h_grid, h_value):
 
 # ------------------------------------------------------------------------ the stage
 def run_adhesion_range(inversion_h5, out_h5, report_csv=None, fig_dir=None, *, tip: str = "",
-                       w_of_h_png=None, adhesion_map_png=None):
+                       w_of_h_png=None, adhesion_map_png=None, inconsistency: str = "random_effects"):
     """Stage 5: reference W_A, per-interval crossings, global h and W_A per traction law.
 
     Writes ``out_h5``; if given, the per-tip report CSV (pipeline.reports) and the
@@ -461,7 +545,7 @@ def run_adhesion_range(inversion_h5, out_h5, report_csv=None, fig_dir=None, *, t
     inv = load_inversion(inversion_h5)
     tip = tip or inv.get("tip") or ""
     h = inv["h"]
-    results = {law: analyse_law(inv, law) for law in inv["laws"]}
+    results = {law: analyse_law(inv, law, inconsistency) for law in inv["laws"]}
     write_range_h5(out_h5, inv, results, tip=tip, source=str(inversion_h5))
     if report_csv is not None:
         from pipeline.reports import write_tip_report
@@ -550,10 +634,18 @@ def write_range_h5(out_h5, inv, results, *, tip="", source=""):
                 write_dataset(g, "dof", gg["dof"], "1", "number of intervals used - 2")
                 write_dataset(g, "p_value", gg.get("p_value", np.nan), "1", "chi2 survival probability")
                 write_dataset(g, "birge_ratio", gg.get("birge_ratio", np.nan), "1",
-                              "max(1, sqrt(chi2_min/dof)): the factor the CIs were widened by (NaN: dof 0)")
+                              "max(1, sqrt(chi2_min/dof)) (NaN: dof 0); the CIs are scaled by it only with inconsistency: birge")
+                write_dataset(g, "tau", gg.get("tau", np.nan), "1",
+                              "between-interval scatter of ln W_A added to every interval (random effects; 0: consistent)")
+                for key, desc in (("ci_widening_h", "ratio of the widths of the 95 % interval of h with and without tau"),
+                                  ("ci_widening_W", "the same for W_A")):
+                    write_dataset(g, key, gg.get(key, 1.0), "1", desc)
                 if "h_pcts_unscaled" in gg:
-                    write_dataset(g, "h_pcts_unscaled", gg["h_pcts_unscaled"], "m", "h percentiles before the Birge scaling")
-                    write_dataset(g, "W_pcts_unscaled", gg["W_pcts_unscaled"], "J/m^2", "W_A percentiles before the Birge scaling")
+                    write_dataset(g, "h_pcts_unscaled", gg["h_pcts_unscaled"], "m", "h percentiles before the widening")
+                    write_dataset(g, "W_pcts_unscaled", gg["W_pcts_unscaled"], "J/m^2", "W_A percentiles before the widening")
+                if "h_unscaled" in gg:
+                    write_dataset(g, "h_unscaled", gg["h_unscaled"], "m", "global h without the between-interval scatter")
+                    write_dataset(g, "W_A_unscaled", gg["W_A_unscaled"], "J/m^2", "global W_A without it")
                 if "h_samples" in gg:
                     write_dataset(g, "h_samples", gg["h_samples"], "m", "per-sample global h")
                     write_dataset(g, "W_samples", gg["W_samples"], "J/m^2", "per-sample common W_A")

@@ -159,7 +159,8 @@ SUMMARY_COLUMNS = [
     "h_nm", "u_h_nm", "h_low_nm", "h_high_nm", "h_full_range_nm", "h_full_range_low_nm", "h_full_range_high_nm",
     "z0_lj_nm", "h_crossings_min_nm", "h_crossings_max_nm", "W_A_ref_mJ_per_m2", "u_W_A_ref_mJ_per_m2",
     "W_A_ref_max_rel_change_over_h", "n_intervals_used", "n_intervals_crossing", "chi2", "dof", "p_value",
-    "ci_scale_birge", "h_change_per_reference_percent", "ci_level",
+    "ci_scale_birge", "between_interval_scatter_percent", "ci_widening_h", "ci_widening_W_A",
+    "h_change_per_reference_percent", "ci_level",
     "h_convention", "status", "notes",
 ]
 
@@ -196,6 +197,9 @@ def summary_rows(rng: dict) -> list:
                 row["dof"] = int(g["dof"])
                 row["p_value"] = float(g.get("p_value", np.nan))
                 row["ci_scale_birge"] = float(g.get("birge_ratio", np.nan))
+                row["between_interval_scatter_percent"] = 100.0 * float(g.get("tau", np.nan))
+                row["ci_widening_h"] = float(g.get("ci_widening_h", 1.0))
+                row["ci_widening_W_A"] = float(g.get("ci_widening_W", 1.0))
             row["n_intervals_used"] = len(g.get("intervals_used", []))
             if g.get("note"):
                 notes.append(str(g["note"]).strip())

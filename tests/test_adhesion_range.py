@@ -246,25 +246,40 @@ def test_flagged_fit_is_not_silently_used(tmp_path):
 
 def test_inconsistent_intervals_widen_the_interval_and_say_so(tmp_path):
     """One worn interval's forces 10 % high (a hidden bias no calibration sees): the intervals
-    disagree beyond their errors, the CIs of h and W_A widen by the Birge ratio sqrt(chi2/dof)
-    (the per-sample spread about the estimate scales by it) and the note says so and by how
-    much; the consistent tip is left as it is (ratio 1, no note)."""
+    disagree beyond their errors.  Random effects (the default): a between-interval scatter tau
+    with chi2_min = dof once it is added (Paule-Mandel), drawn in the Monte Carlo, widens the
+    CIs, and the note says by how much; Birge: the per-sample spread scales by sqrt(chi2/dof).
+    The consistent tip is left as it is (tau 0, ratio 1, no note)."""
+    from pipeline.adhesion_range import _cov_inverse, _min_chi2, load_inversion
     from pipeline.mechanics import pulloff_force
 
     c = dict(CASES["tipB_Si"])
     res, _, _ = _case(tmp_path / "ok", **c)
     g = res["dugdale"]["global"]
-    assert g["birge_ratio"] == 1.0 and "Birge" not in g["note"]
+    assert g["birge_ratio"] == 1.0 and g["tau"] == 0.0 and "random effects" not in g["note"]
     F3 = 1.10 * float(pulloff_force(4.0, c["R"] ** 3, c["E_star"], c["W_A"], c["h"], model="mdn", exact=True))
     extra = [dict(name="s100", n=4.0, R=c["R"], F_p=F3)]
     res, _, _ = _case(tmp_path / "bad", **c, extra=extra)
     g = res["dugdale"]["global"]
-    S = g["birge_ratio"]
-    assert S == pytest.approx(np.sqrt(g["chi2_min"] / g["dof"])) and S > 2
-    assert f"widened by the Birge ratio sqrt(chi2/dof) = {S:.2f}" in g["note"]
-    w, w0 = np.log(g["h_pcts"][-1] / g["h_pcts"][0]), np.log(g["h_pcts_unscaled"][-1] / g["h_pcts_unscaled"][0])
-    assert w / w0 == pytest.approx(S, rel=0.15)
+    assert g["tau"] > 0.02 and g["ci_widening_h"] > 2
+    assert f"between-interval scatter of {100 * g['tau']:.1f} % in W_A" in g["note"]
+    assert f"widened the 95 % interval of h by {g['ci_widening_h']:.2f}x" in g["note"]
     assert g["h_pcts"][0] < c["h"] < g["h_pcts"][-1]
+    # tau is what brings chi2_min down to dof (checked by an independent re-evaluation)
+    inv = load_inversion(tmp_path / "bad" / "inversion.h5")
+    from pipeline.adhesion_range import _ln
+
+    names = g["intervals_used"]
+    Yc = np.stack([_ln(inv["intervals"][nm]["laws"]["dugdale"]["W_A"]) for nm in names], axis=-1)
+    Ys = np.stack([_ln(inv["intervals"][nm]["laws"]["dugdale"]["W_A_samples"]) for nm in names], axis=-1)
+    assert _min_chi2(np.log(inv["h"]), Yc, _cov_inverse(Ys, tau2=g["tau"] ** 2))[0] == pytest.approx(g["dof"], rel=0.01)
+    # the Birge alternative
+    gb = analyse_law(inv, "dugdale", "birge")["global"]
+    S = gb["birge_ratio"]
+    assert S == pytest.approx(np.sqrt(gb["chi2_min"] / gb["dof"])) and S > 2
+    assert f"widened by the Birge ratio sqrt(chi2/dof) = {S:.2f}" in gb["note"]
+    w, w0 = np.log(gb["h_pcts"][-1] / gb["h_pcts"][0]), np.log(gb["h_pcts_unscaled"][-1] / gb["h_pcts_unscaled"][0])
+    assert w / w0 == pytest.approx(S, rel=0.15)
 
 
 def test_birge_ratio():

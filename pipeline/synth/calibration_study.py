@@ -97,18 +97,69 @@ def true_forces(case: Case) -> np.ndarray:
     return np.asarray(pulloff_force(n, q, case.E_star, case.W_A, case.h, model="mdn", exact=True), float)
 
 
-def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_grid=None, oracle_invols=False) -> dict:
+def _instrument(case: Case, rng):
+    """An instrument for the case (``pipeline.synth.afm_instrument``): anti-alias filter (none or
+    1-3 kHz), detector noise 0.02-0.1 nm, laser interference up to 0.2 nm in a third of the tips,
+    the lever's resonance from its stiffness."""
+    from pipeline.synth.afm_instrument import Instrument, Lever
+
+    lever = Lever(k=case.k, f0=20e3 * np.sqrt(case.k / 0.1), Q=float(rng.uniform(30, 300)))
+    inst = Instrument(lowpass=float(rng.choice([0.0, 1e3, 2e3, 3e3])), detector_noise=float(rng.uniform(0.02e-9, 0.1e-9)),
+                      interference=float(rng.uniform(0, 0.2e-9)) if rng.random() < 1 / 3 else 0.0,
+                      trigger=20e-9)
+    return lever, inst
+
+
+def _write_curves(case: Case, i, n, Fi, folder, rng, generator, lever, inst):
+    """The interval's curves: (paths, true F_p per curve, reader settings)."""
+    F_curves = Fi * (1.0 + case.scatter * rng.standard_normal(case.n_curves))
+    if generator == "lorentzian":  # the stage's own generator (force_curves.make_force_curve)
+        from pipeline.synth.force_curves import make_force_curve, write_curve_csv
+
+        paths = []
+        for j, Fj in enumerate(F_curves):
+            # trigger deflection: 20 nm, or a third of the adhesive jump where that is larger
+            c = make_force_curve(float(Fj), case.k, float(case.invols[i]), seed=int(rng.integers(2**31)),
+                                 offset_V=float(rng.normal(0, 0.05)), tilt=float(rng.normal(0, 2e5)), noise=0.1e-9,
+                                 setpoint_deflection=max(20e-9, Fj / case.k / 3.0))
+            paths.append(write_curve_csv(folder / f"c{j}.csv", c))
+        return paths, F_curves, {}
+    from dataclasses import replace
+
+    from pipeline.synth.afm_instrument import READER, Interaction, simulate_curve, write_instrument_csv
+
+    q = case.S ** (n - 2.0) * case.R ** (n - 1.0)
+    paths, truth = [], []
+    lv = replace(lever, invols=float(case.invols[i]))
+    for j, Fj in enumerate(F_curves):
+        ins = replace(inst, offset_V=float(rng.normal(0, 0.1)), tilt=float(rng.normal(0, 2e5)),
+                      trigger=max(20e-9, float(Fj) / case.k / 3.0))
+        c = simulate_curve(Interaction(float(Fj), "dugdale", case.h, float(n), q, case.E_star), lv, ins,
+                           seed=int(rng.integers(2**31)))
+        paths.append(write_instrument_csv(folder / f"c{j}.tsv", c))
+        truth.append(c.truth["F_p"])
+    return paths, np.array(truth), dict(READER)
+
+
+def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_grid=None, oracle_invols=False,
+             generator="instrument") -> dict:
     """Write the case's curves and fits, run stages 3-5 (Dugdale law), compare with the truth.
 
-    ``cantilever``: the tip's ``cantilever:`` section (SI); default k with its uncertainty and
-    no InvOLS (per interval, from the contact slopes).  ``oracle_invols``: every interval is
-    given its true InvOLS with no uncertainty instead (what the data would give with a perfect
-    calibration: the errors left are the shape fits' and the pull-off scatter's).  Returns a
-    dict of the errors and the coverage of the 95 % intervals."""
+    ``generator``: ``instrument`` (default; ``pipeline.synth.afm_instrument``, which shares no
+    code or force law with the stage: the tip's own Dugdale law over its power-law shape, a
+    Sneddon contact, filters, ringing, interference) or ``lorentzian`` (the stage's own
+    ``force_curves`` generator).  ``cantilever``: the tip's ``cantilever:`` section (SI);
+    default k with its uncertainty and no InvOLS (per interval, from the contact slopes).
+    ``oracle_invols``: every interval is given its true InvOLS with no uncertainty instead
+    (what the data would give with a perfect calibration: the errors left are the shape fits'
+    and the pull-off scatter's).  Returns a dict of the errors and the coverage of the 95 %
+    intervals; ``fp_err_max`` is the worst interval F_p (as stage 4 uses it, after the contact
+    compliance correction) against the weighted truth of the curves used."""
+    import h5py
+
     from pipeline.adhesion_range import analyse_law
     from pipeline.forces.stage import run_forces
-    from pipeline.inversion import load_forces, load_inversion, run_inversion, write_synthetic_fit
-    from pipeline.synth.force_curves import make_force_curve, write_curve_csv
+    from pipeline.inversion import load_inversion, run_inversion, write_synthetic_fit
 
     tmp = tempfile.TemporaryDirectory() if workdir is None else None
     root = Path(workdir or tmp.name)
@@ -116,22 +167,17 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
     F = true_forces(case) * case.bias
     cant = cantilever or {"spring_constant": case.k, "spring_constant_uncertainty": case.u_k_rel * case.k}
     cant = {**cant, "base_dir": str(root)}
-    fits, forces, ivs, fp_err = {}, {}, [], []
+    lever, inst = _instrument(case, np.random.default_rng([case.seed, 0x1257]))
+    fits, forces, ivs, truth_F = {}, {}, [], {}
     for i, (n, Fi) in enumerate(zip(case.n, F)):
         nm = f"i{i}"
-        F_curves = Fi * (1.0 + case.scatter * rng.standard_normal(case.n_curves))
-        paths = []
-        for j, Fj in enumerate(F_curves):
-            # trigger deflection: 20 nm, or a third of the adhesive jump where that is larger
-            c = make_force_curve(float(Fj), case.k, float(case.invols[i]), seed=int(rng.integers(2**31)),
-                                 offset_V=float(rng.normal(0, 0.05)), tilt=float(rng.normal(0, 2e5)), noise=0.1e-9,
-                                 setpoint_deflection=max(20e-9, Fj / case.k / 3.0))
-            paths.append(write_curve_csv(root / "curves" / nm / f"c{j}.csv", c))
+        paths, F_curves, reader = _write_curves(case, i, n, Fi, root / "curves" / nm, rng, generator, lever, inst)
         forces[nm] = str(root / "forces" / f"{nm}.h5")
         icfg = {"deflection_sensitivity": float(case.invols[i]), "deflection_sensitivity_uncertainty": 0.0} if oracle_invols else {}
-        run_forces(paths, forces[nm], root / "forces" / f"{nm}.png", cantilever=cant, reader={}, tip=f"case{case.seed}",
+        run_forces(paths, forces[nm], root / "forces" / f"{nm}.png", cantilever=cant, reader=reader, tip=f"case{case.seed}",
                    interval=nm, interval_cfg=icfg)
-        fp_err.append(load_forces(forces[nm])["F_p_mean"] / F_curves.mean() - 1.0)
+        with h5py.File(forces[nm]) as f:
+            truth_F[nm] = float(np.sum(f["curves/weight"][()] * F_curves))
         n_obs, lnr_obs, cov = _observed_shape(case, n, rng)
         fits[nm] = str(root / "fits" / f"{nm}.h5")
         para = None
@@ -144,18 +190,20 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
     h = np.geomspace(0.1e-9, 20e-9, 160) if h_grid is None else h_grid
     run_inversion(fits, forces, root / "inversion.h5", intervals=ivs, E_star=case.E_star, u_E_star=0.03 * case.E_star,
                   h_grid=h, laws=("dugdale",), mc_samples=mc_samples, seed=case.seed, tip=f"case{case.seed}")
-    g = analyse_law(load_inversion(root / "inversion.h5"), "dugdale")["global"]
-    hp, wp = np.asarray(g["h_pcts"]), np.asarray(g["W_pcts"])
-    out = {
-        "seed": case.seed, "kind": case.kind, "intervals": len(case.n), "drift_sd": float(np.std(case.invols) / np.mean(case.invols)),
-        "status": g.get("status", ""), "h_err": g["h"] / case.h - 1.0, "W_err": g["W_A"] / case.W_A - 1.0,
-        "h_covered": bool(hp[0] <= case.h <= hp[-1]) if np.all(np.isfinite(hp[[0, -1]])) else bool(
-            (np.nan_to_num(hp[0], nan=-np.inf) <= case.h <= np.nan_to_num(hp[-1], nan=np.inf))),
-        "W_covered": bool(wp[0] <= case.W_A <= wp[-1]), "h_rel_halfwidth": 0.5 * (hp[-1] - hp[0]) / g["h"],
-        "birge": float(g.get("birge_ratio", np.nan)), "chi2": float(g["chi2_min"]), "dof": int(g["dof"]),
-        "fp_err_max": float(np.max(np.abs(fp_err))), "note": g.get("note", ""),
-        "lambda_over_boundary": _max_lambda_ratio(case),
-    }
+    inv = load_inversion(root / "inversion.h5")
+    fp_err = [inv["intervals"][nm]["F_p_mean"] / truth_F[nm] - 1.0 for nm in truth_F]
+    out = {"seed": case.seed, "kind": case.kind, "intervals": len(case.n),
+           "drift_sd": float(np.std(case.invols) / np.mean(case.invols)),
+           "fp_err_max": float(np.max(np.abs(fp_err))), "lambda_over_boundary": _max_lambda_ratio(case)}
+    for model in ("random_effects", "birge"):  # the default first: its keys are unprefixed
+        g = analyse_law(inv, "dugdale", model)["global"]
+        hp, wp = np.asarray(g["h_pcts"]), np.asarray(g["W_pcts"])
+        r = {"status": g.get("status", ""), "h_err": g["h"] / case.h - 1.0, "W_err": g["W_A"] / case.W_A - 1.0,
+             "h_covered": bool(np.nan_to_num(hp[0], nan=-np.inf) <= case.h <= np.nan_to_num(hp[-1], nan=np.inf)),
+             "W_covered": bool(wp[0] <= case.W_A <= wp[-1]), "h_rel_halfwidth": 0.5 * (hp[-1] - hp[0]) / g["h"],
+             "birge": float(g.get("birge_ratio", np.nan)), "tau": float(g.get("tau", np.nan)),
+             "chi2": float(g["chi2_min"]), "dof": int(g["dof"]), "note": g.get("note", "")}
+        out.update(r if model == "random_effects" else {f"birge_{k}": v for k, v in r.items()})
     if tmp is not None:
         tmp.cleanup()
     return out
