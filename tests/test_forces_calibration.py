@@ -86,3 +86,28 @@ def test_precedence_yaml_over_file_and_errors():
                                 reader={}, label="tip 'x' interval 'y'")
     with pytest.raises(CalibrationError, match="spring constant"):
         calibrate({"deflection_sensitivity": 40e-9}, [_curve()])
+
+
+def test_one_spiked_hard_sample_curve_is_left_out_not_fatal(tmp_path):
+    """Four hard-sample calibration curves, one with a burst of spikes in its contact part (the
+    photodiode saturating for a few samples): it is left out with its reason, the tip-level
+    InvOLS comes from the other three, and every forces job still runs."""
+    import numpy as np
+
+    from pipeline.forces.calibration import calibrate
+    from pipeline.synth.force_curves import make_force_curve, write_curve_csv
+
+    invols = 52e-9
+    cal_dir = tmp_path / "hard"
+    for j in range(4):
+        c = make_force_curve(3e-9, 0.3, invols, seed=40 + j, noise=0.05e-9)
+        if j == 2:
+            app = np.flatnonzero(c.segment == "approach")
+            contact = app[-120:-60]
+            c.deflection_V[contact[::6]] += 3.0  # ten spikes of 3 V across the contact part
+        write_curve_csv(cal_dir / f"h{j}.csv", c)
+    cal = calibrate({"spring_constant": 0.3, "hard_sample_curves": "hard", "deflection_sensitivity_method": "hard_sample",
+                     "base_dir": str(tmp_path)}, [], {})
+    assert cal.invols == pytest.approx(invols, rel=0.01)
+    assert "1 curve(s) left out" in cal.invols_source and "h2.csv" in cal.invols_source
+    assert len(cal.details["hard_sample"]["invols"][0]) == 3

@@ -109,20 +109,31 @@ def test_stage_weights_a_noisy_curve_down(tmp_path):
     assert abs(mean / np.delete(F, 2).mean() - 1) < 0.01
 
 
-def test_small_pulloff_deflection_is_said_in_words(tmp_path):
-    """1.5 nm of pull-off deflection (a lever stiff for the adhesion): the reading can be biased
-    high by several % (README, Known limitations); the HDF5 warnings say so."""
-    import h5py
-
+def test_clipped_pulloff_is_rejected_with_the_reason(tmp_path):
+    """Every curve of an interval clipped at the detector's limit (the adhesive dip flat at the
+    rail): each is rejected as clipped and the stage refuses the interval (before: F_p 51 % low,
+    8 of 8 curves used, no flag).  A 12-bit ADC's flat steps at a genuine minimum are no clipping."""
+    from pipeline.forces.errors import ForceCurveError, ForcesStageError
     from pipeline.forces.stage import run_forces
     from pipeline.synth.force_curves import write_curve_csv
 
-    k = 2.0
-    paths = [write_curve_csv(tmp_path / f"c{j}.csv", make_force_curve(1.5e-9 * k, k, INVOLS, seed=j)) for j in range(4)]
-    out = tmp_path / "f.h5"
-    run_forces(paths, out, tmp_path / "f.png", cantilever={"spring_constant": k, "deflection_sensitivity": INVOLS,
-                                                          "method": "given", "base_dir": str(tmp_path)},
-               reader={}, tip="t", interval="i", interval_cfg={})
-    with h5py.File(out) as f:
-        text = str(f.attrs["warnings"])
-    assert "pull-off deflection is only 1.6 nm" in text and "softer lever" in text  # read +4 % high
+    k, F = 0.5, 10e-9
+    paths = []
+    for j in range(8):
+        c = make_force_curve(F, k, INVOLS, seed=j, noise=0.1e-9)
+        c.deflection_V[:] = np.maximum(c.deflection_V, -0.1)  # the dip (-0.4 V) cut at -0.1 V
+        paths.append(write_curve_csv(tmp_path / f"c{j}.csv", c))
+        r = c.segment == "retract"
+        with pytest.raises(ForceCurveError, match="clipped"):
+            detect_pulloff(1e-6 - c.height[r], c.deflection_V[r])
+    with pytest.raises(ForcesStageError, match="clipped"):
+        run_forces(paths, tmp_path / "f.h5", tmp_path / "f.png", cantilever={"spring_constant": k, "deflection_sensitivity": INVOLS,
+                                                                            "deflection_sensitivity_method": "given"}, reader={},
+                   tip="t", interval="i")
+    assert not (tmp_path / "f.h5").exists()
+    # quantised to 12 bits over +-10 V (4.9 mV, 0.24 nm): flat runs, read as before
+    c = make_force_curve(F, k, INVOLS, seed=3, noise=0.05e-9)
+    lsb = 20.0 / 4096
+    r = c.segment == "retract"
+    po = detect_pulloff(1e-6 - c.height[r], np.round(c.deflection_V[r] / lsb) * lsb)
+    assert po.delta * INVOLS * k / F == pytest.approx(1.0, abs=0.02)

@@ -89,3 +89,83 @@ def test_broken_instrument_file_named(tmp_path):
     other.write_bytes(b"II*\x00")
     with pytest.raises(ForceCurveError, match="image.tif.*not an afmformats format"):
         read_curves(other)
+
+
+AFMW = sorted(DATA.glob("fmt-afm-workshop-fd_single_*.csv"))
+AFMW_FORCE = DATA / "fmt-afm-workshop-fd_single_2021-10-22_14.16.csv"  # force in nN, no calibration stored
+
+
+def test_afm_workshop_csv_read_through_afmformats_without_a_traceback(tmp_path):
+    """AFM Workshop exports (.csv, but not our CSV layout) go to afmformats; the one storing the
+    instrument's force (nN) without its calibration is converted back with the YAML's k and InvOLS
+    (the values set in the instrument), or refused naming them -- never a traceback."""
+    assert len(AFMW) == 4
+    with pytest.raises(ForceCurveError, match="cantilever.spring_constant and cantilever.deflection_sensitivity"):
+        read_curves(AFMW_FORCE)
+    (c,) = read_curves(AFMW_FORCE, {"instrument_spring_constant": 0.2, "instrument_deflection_sensitivity": 50e-9})
+    assert c.defl_units == "V" and c.spring_constant is None
+    cant = {"spring_constant": 0.2, "deflection_sensitivity": 50e-9, "deflection_sensitivity_method": "given"}
+    run_forces([AFMW_FORCE], tmp_path / "w.h5", tmp_path / "w.png", cantilever=cant, reader=ONE)
+    with h5py.File(tmp_path / "w.h5") as f:
+        F = f["interval/F_p_mean"][()]
+    # the file's own force column: its adhesive dip below the free retract, read the same way in N
+    import numpy as np
+    import pandas as pd
+
+    df = pd.read_csv(AFMW_FORCE, skiprows=10)
+    fr = df["Retract Force(nN)"].to_numpy()
+    assert F == pytest.approx((np.median(fr[-100:]) - fr.min()) * 1e-9, rel=0.1)
+    for p in AFMW:  # all read, one line of error at most
+        try:
+            read_curves(p, {"instrument_spring_constant": 0.2, "instrument_deflection_sensitivity": 50e-9})
+        except ForceCurveError as exc:
+            raise AssertionError(f"{p.name}: {exc}") from None
+
+
+def _jpk_without_spring_constant(tmp_path):
+    """The JPK curve with its force calibration (the spring constant) removed from the headers."""
+    import zipfile
+
+    out = tmp_path / "no_k.jpk-force"
+    with zipfile.ZipFile(JPK) as zi, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as zo:
+        for it in zi.infolist():
+            data = zi.read(it.filename)
+            if it.filename.endswith(".properties"):
+                lines = [ln for ln in data.decode("latin-1").split("\n")
+                         if "conversion.force.scaling.multiplier" not in ln and "conversion.force.defined" not in ln]
+                data = "\n".join(lines).encode("latin-1")
+            zo.writestr(it, data)
+    return out
+
+
+def test_jpk_with_invols_but_no_spring_constant(tmp_path):
+    """The file's InvOLS is kept and used; only k is asked for."""
+    path = _jpk_without_spring_constant(tmp_path)
+    (c,) = read_curves(path)
+    assert c.spring_constant is None and c.invols == pytest.approx(70.0e-9, rel=1e-4)
+    with pytest.raises(CalibrationError, match="spring constant") as exc:
+        run_forces([path], tmp_path / "j.h5", tmp_path / "j.png", cantilever={}, reader=ONE)
+    assert "InvOLS" not in str(exc.value).split("spring constant")[0]
+    run_forces([path], tmp_path / "j.h5", tmp_path / "j.png", cantilever={"spring_constant": 0.043494}, reader=ONE)
+    with h5py.File(tmp_path / "j.h5") as f:
+        assert f["calibration/invols_method"][()].decode() == "interval_file"
+        assert f["interval/F_p_mean"][()] == pytest.approx(0.395e-9, rel=0.05)  # as with the complete file
+
+
+def test_whitespace_dat_curves_are_read(tmp_path):
+    """A .dat file with white-space columns (the README says .dat is read as CSV)."""
+    import numpy as np
+
+    from pipeline.forces.pulloff import detect_pulloff
+    from pipeline.synth.force_curves import make_force_curve
+
+    c = make_force_curve(5e-9, 0.5, 50e-9, seed=1)
+    p = tmp_path / "c.dat"
+    with open(p, "w") as fh:
+        fh.write("height_nm deflection_V segment\n")
+        for h, v, s in zip(c.height * 1e9, c.deflection_V, c.segment):
+            fh.write(f"{h:.6f} {v:.7e} {s}\n")
+    (cu,) = read_curves(p)
+    po = detect_pulloff(cu.z_retract, cu.deflection_volts())
+    assert po.delta * 50e-9 * 0.5 == pytest.approx(5e-9, rel=0.02)
+    assert np.all(np.diff(cu.z_approach) > 0)

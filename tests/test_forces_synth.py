@@ -50,7 +50,8 @@ def test_csv_roundtrip_and_invols_from_contact_slope(tmp_path):
         c = make_force_curve(3e-9, 0.3, invols, seed=seed, noise=0.1e-9, tilt=2e5, offset_V=-0.1)
         curves.extend(read_curves(write_curve_csv(tmp_path / f"h{seed}.csv", c)))
     assert curves[0].z_approach[-1] > curves[0].z_approach[0]
-    mean, u, vals, _ = invols_from_curves(curves)
+    mean, u, vals, _, rejected = invols_from_curves(curves)
+    assert rejected == []
     assert mean == pytest.approx(invols, rel=0.01)
     assert u < 0.01 * invols and vals.size == 3
     # soft sample: slope k_c/(k_c+k) -> apparent InvOLS larger by (k_c+k)/k_c

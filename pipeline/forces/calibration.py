@@ -19,6 +19,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from pathlib import Path
+
 import numpy as np
 
 from pipeline.forces.contact_slope import invols_from_curves
@@ -84,20 +86,33 @@ def _hard_sample_invols(cant, reader, details, key="hard_sample_curves", group="
         raise CalibrationError(f"cantilever.{key}: no files match {cant[key]!r} (base_dir {cant.get('base_dir', '.')!r})")
     from pipeline.forces.reading import read_curves
 
-    curves = []
-    try:
-        for p in files:
+    curves, rejected = [], []
+    for p in files:  # an unreadable file is left out with its reason, not the whole calibration
+        try:
             curves.extend(read_curves(p, reader))
-        mean, u, vals, us = invols_from_curves(curves, fit_range=tuple(cant["contact_fit_range"]), segment=cant["contact_segment"])
+        except ForceCurveError as exc:
+            rejected.append((str(p), exc.reason))
+    try:
+        if not curves:
+            raise ForceCurveError(files[0], "no readable hard-sample curve")
+        mean, u, vals, us, bad = invols_from_curves(curves, fit_range=tuple(cant["contact_fit_range"]), segment=cant["contact_segment"])
     except ForceCurveError as exc:
-        raise CalibrationError(f"cantilever.{key}: {exc}") from None
+        why = "; ".join(f"{p}: {r}" for p, r in rejected[:3])
+        raise CalibrationError(f"cantilever.{key}: {exc}" + (f"; unreadable: {why}" if why else "")) from None
+    rejected += bad
     details[group] = {
-        "file": ([c.path for c in curves], "1", "hard-sample curves"),
-        "invols": (vals, "m/V", "InvOLS from the contact slope of each curve"),
+        "file": ([c.path for c in curves], "1", "hard-sample curves read"),
+        "invols": (vals, "m/V", "InvOLS from the contact slope of each curve used"),
         "u_invols_fit": (us, "m/V", "fit standard error of each curve's InvOLS"),
+        "rejected": ([f"{p}: {r}" for p, r in rejected], "1", "curves left out, with the reason"),
         "contact_fit_range": (np.asarray(cant["contact_fit_range"], float), "1", "fraction of max deflection fitted"),
     }
-    return mean, u, f"contact slope of {len(curves)} curve(s) in {cant[key]} ({cant['contact_segment']}), u = SEM" if len(curves) > 1 else f"contact slope of 1 curve in {cant[key]}, u = fit error"
+    n = vals.size
+    src = (f"contact slope of {n} curve(s) in {cant[key]} ({cant['contact_segment']}), u = SEM" if n > 1
+           else f"contact slope of 1 curve in {cant[key]}, u = fit error")
+    if rejected:
+        src += f"; {len(rejected)} curve(s) left out: " + "; ".join(f"{Path(p).name}: {r}" for p, r in rejected[:3])
+    return mean, u, src
 
 
 def calibrate(cantilever: dict | None, curves: list[ForceCurve], reader: dict | None = None) -> Calibration:

@@ -71,19 +71,35 @@ def contact_slope(z, d, *, fit_range=(0.2, 0.8), path="") -> ContactSlope:
 
 
 def invols_from_curves(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), segment="approach"):
-    """Mean InvOLS over hard-sample curves: (mean, u, per-curve values, per-curve fit u).
+    """Mean InvOLS over hard-sample curves: (mean, u, per-curve values, per-curve fit u, rejected).
 
-    u = standard error of the mean for >= 2 curves, else the fit error.
-    """
-    vals, us = [], []
+    A curve whose contact part gives no slope (too short, not linear: a spike, drift) or whose
+    InvOLS is an outlier among the others (generalized ESD at 1 %, up to a third of them) is left
+    out with the reason; ``rejected`` lists (file, reason).  u = standard error of the mean for
+    >= 2 curves, else the fit error.  Raises ForceCurveError when no curve gives a slope."""
+    from pipeline.forces.statistics import generalized_esd
+
+    vals, us, paths, rejected = [], [], [], []
     for c in curves:
         z = c.z_approach if segment == "approach" else c.z_retract
-        cs = contact_slope(z, c.deflection_volts(segment), fit_range=fit_range, path=c.path)
+        try:
+            cs = contact_slope(z, c.deflection_volts(segment), fit_range=fit_range, path=c.path)
+        except ForceCurveError as exc:
+            rejected.append((c.path, exc.reason))
+            continue
         vals.append(cs.invols)
         us.append(cs.u_invols)
+        paths.append(c.path)
     vals, us = np.array(vals), np.array(us)
     if vals.size == 0:
-        raise ValueError("no hard-sample curves")
+        why = "; ".join(f"{p}: {r}" for p, r in rejected[:3])
+        raise ForceCurveError(curves[0].path if curves else "", f"no hard-sample curve gives a contact slope ({why})")
+    if vals.size >= 3:
+        out = generalized_esd(vals, alpha=0.01)
+        for p, v in zip(np.array(paths)[out], vals[out]):
+            rejected.append((str(p), f"its InvOLS {v * 1e9:.4g} nm/V is an outlier among the {vals.size} curves "
+                                     f"(median {np.median(vals) * 1e9:.4g} nm/V)"))
+        vals, us = vals[~out], us[~out]
     mean = float(vals.mean())
     u = float(vals.std(ddof=1) / np.sqrt(vals.size)) if vals.size > 1 else float(us[0])
-    return mean, u, vals, us
+    return mean, u, vals, us, rejected

@@ -116,6 +116,33 @@ def _abscissa(z, dc, lo, hi):
     return (np.arange(z.size, dtype=float) if by_index else z), by_index
 
 
+def _clipped_run(z, d, dc, i_min, fit_points, min_run=3):
+    """Why the adhesive dip is flat at the rail of the recorded range (a saturated detector or ADC:
+    never a pull-off), or ''.  A run of >= ``min_run`` samples at exactly the lowest recorded
+    value, around the deepest point, where the contact line before the run would have gone on down
+    (its value at the run's end below the run by > 4 x its noise and > 5 % of the depth): a
+    coarsely quantised genuine minimum has flat runs too, but its contact line ends at them."""
+    rail = float(d.min())
+    at = np.abs(d - rail) <= 1e-12 * max(abs(rail), 1e-300)
+    if not at[i_min]:
+        return ""
+    a = b = i_min
+    while a > 0 and at[a - 1]:
+        a -= 1
+    while b < d.size - 1 and at[b + 1]:
+        b += 1
+    if b - a + 1 < min_run or a < 5:
+        return ""
+    lo = max(0, a - fit_points)
+    line = fit_line(np.arange(lo, a, dtype=float), dc[lo:a], clip=np.inf)
+    below = float(dc[a] - line(float(b)))
+    if below > max(4.0 * line.rms, 0.05 * -float(dc[a])):
+        return (f"the adhesive dip is clipped: {b - a + 1} samples sit at the lowest recorded value ({rail:.6g}, the "
+                f"detector's or the ADC's limit) where the contact line still falls: its real depth is not recorded, "
+                f"so this is no pull-off (re-record with a larger deflection range or a lower gain)")
+    return ""
+
+
 def _noise_near(dc, i, half=10):
     """Noise rms of the samples just before ``i`` about a straight line (m or V)."""
     lo = max(0, i - 2 * half)
@@ -309,6 +336,9 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
     i_j = _jump_index(dc, path)
     i_min = int(np.argmin(dc[: i_j + 1]))
     delta_min = float(-dc[i_min])
+    clipped = _clipped_run(z, d, dc, i_min, int(fit_points))
+    if clipped:
+        raise ForceCurveError(path, clipped)
     step = 0.0
     jump_fraction = float((dc[i_j + 1 : i_j + 4].max() - dc[i_j]) / delta_min)
     shape = "sharp jump"

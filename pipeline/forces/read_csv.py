@@ -5,8 +5,8 @@ Default layout (``force_curves.columns``): ``height_nm, deflection_V, segment``;
 ``height_axis: extension`` for the opposite sign), ``segment`` labels rows
 ``approach``/``retract`` (also ``extend``, ``app``, ``ret``, ``0``, ``1``; other labels
 such as ``pause`` are ignored).  Without a segment column the ramp is split where the
-piezo reverses.  Lines starting with ``#`` are comments; the delimiter (comma, tab
-or semicolon) is taken from the header line.
+piezo reverses.  Lines starting with ``#`` are comments; the delimiter (comma, tab,
+semicolon, or white space as in many .dat files) is taken from the header line.
 """
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def read_csv_curve(path, reader: dict) -> ForceCurve:
         header = _header(path)
     except UnicodeDecodeError:
         raise ForceCurveError(path, "not a text CSV/TSV file (binary content); set force_curves.format or check the file type") from None
-    sep = "\t" if "\t" in header else (";" if ";" in header else ",")
+    sep = "\t" if "\t" in header else (";" if ";" in header else ("," if "," in header else r"\s+"))
     try:
         df = pd.read_csv(path, sep=sep, comment="#", skipinitialspace=True)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:

@@ -76,6 +76,9 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
     for a, b in ((reader, cant), (cant, reader)):
         if "base_dir" in b and "base_dir" not in a:
             a["base_dir"] = b["base_dir"]
+    # files that store the instrument's force without its calibration are undone with these
+    reader["instrument_spring_constant"] = cant.get("spring_constant")
+    reader["instrument_deflection_sensitivity"] = cant.get("deflection_sensitivity")
     label = f"tip {tip!r} interval {interval!r}"
     files = _expand(curve_paths, reader)
     if not files:
@@ -127,10 +130,6 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
     u_F_stat = cal.k * col["u_delta_m"]
     st = interval_stats(F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"], u=u_F_stat)
     used = accepted & ~st.outlier
-    small = _small_deflection_warning(float(np.sum(st.weight[used] * col["delta_m"][used])), reader)
-    if small:
-        warnings.append(f"{label}: {small}")
-        log.warning(warnings[-1])
     u_k_rel, u_inv_rel, u_cal_rel, factor, u_factor, corr = _calibration_parts(cal, inv)
 
     with atomic_h5(out_h5, stage="forces", tip=tip, interval=interval, outlier_rule=OUTLIER_RULES[reader["outlier_rule"]], mean_rule=MEAN_RULE,
@@ -214,20 +213,6 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
 
         plot_retracts(out_png, [_plot_item(r, cal.k, inv.value, st.outlier[i]) for i, r in enumerate(rows) if r["curve"] is not None],
                       n_total=n, title=f"{tip} {interval}: F_p = {st.mean * 1e9:.3g} +- {np.nan_to_num(st.sem) * 1e9:.2g} nN (n={st.n_used})")
-
-
-SMALL_DELTA = 2e-9  # m: below this a stiff lever's reading of F_p can be biased high by several %
-
-
-def _small_deflection_warning(delta_m: float, reader: dict) -> str:
-    """Words for an interval whose pull-off deflection is so small that a lever stiff enough for it
-    may follow the force law past its maximum before it lets go (README, Known limitations)."""
-    if reader.get("pulloff_method", "fit") != "fit" or not (0 < delta_m < SMALL_DELTA):
-        return ""
-    return (f"the pull-off deflection is only {delta_m * 1e9:.2g} nm: a lever this stiff for the adhesion follows the "
-            "force past its maximum over ~(interaction range)^2 / (2 Delta) before it lets go, and the contact line "
-            "extrapolated to the jump then reads F_p high (about +4 % at 1.5 nm for a 0.5 nm range, not in the "
-            "uncertainty); a softer lever (Delta >= 5 nm) avoids it")
 
 
 def _nan(row, attr):
