@@ -441,7 +441,17 @@ class _PathSolver:
     def start(self, a0):
         """Compressed contact with the pinned radius a0 (laws with a wall): the non-adhesive
         contact (Hertz power-law approach D = -(n/2) B(n/2, 1/2) a0^n as first guess; a linear
-        complementarity problem), then the attraction switched on at fixed a0."""
+        complementarity problem), then the attraction switched on at fixed a0.  Should that fail
+        on a fine grid, the start is made on the coarsest grid and carried over."""
+        try:
+            return self._start(a0)
+        except _NoConvergence:
+            if self.level <= 1.0:
+                raise
+        coarse = _PathSolver(self.n, self.kappa, self.law, self.x_cover, self.x_max, level=1.0, ramp=self.ramp)
+        return self.solve(-a0, coarse._start(a0))
+
+    def _start(self, a0):
         D_h = -0.5 * self.n * sp.beta(0.5 * self.n, 0.5) * a0**self.n
         x0 = np.array([0.0, a0, self.x_max])
         sol = self.solve(-a0, _Solution(-a0, x0, D_h + x0**self.n, D_h, 0.0, np.zeros(0)), theta=0.0)
@@ -529,6 +539,22 @@ def _scan_in(solver: _PathSolver, plan, max_solves=150):
     raise _NoConvergence(f"no compressive state within {max_solves} path points")
 
 
+def _solve_towards(solver: _PathSolver, psi, known, depth=6):
+    """Solve at psi from the nearest known state; where Newton fails, first at the midpoint
+    (recursively), so hard stretches of the path are crossed in shorter steps.  New states are
+    appended to ``known``."""
+    near = min(known, key=lambda s: abs(s.psi - psi))
+    try:
+        sol = solver.solve(psi, near)
+    except _NoConvergence:
+        if depth == 0:
+            raise
+        _solve_towards(solver, 0.5 * (near.psi + psi), known, depth - 1)
+        sol = solver.solve(psi, min(known, key=lambda s: abs(s.psi - psi)))
+    known.append(sol)
+    return sol
+
+
 def _maximise(solver: _PathSolver, sols, i_best, rel_tol=1e-4):
     """Brent's bounded maximisation of f(psi) between the neighbours of the best scanned state."""
     lo = sols[max(i_best - 1, 0)].psi
@@ -536,12 +562,10 @@ def _maximise(solver: _PathSolver, sols, i_best, rel_tol=1e-4):
     known = list(sols)
 
     def neg_f(psi):
-        near = min(known, key=lambda s: abs(s.psi - psi))
         try:
-            sol = solver.solve(psi, near)
+            sol = _solve_towards(solver, psi, known)
         except _NoConvergence:
-            return -near.f
-        known.append(sol)
+            return -min(known, key=lambda s: abs(s.psi - psi)).f
         return -sol.f
 
     if hi > lo:
@@ -634,7 +658,8 @@ def elastic_pulloff(n, Lambda, law="dugdale", level=2.0, estimate_error=False):
     n in [2, 20], Lambda in (0, 30] (Eq. 8, ERRATA; larger Lambda: the JKR limit, where every law
     gives the M-D-n value), law: "dugdale", "lj", "tri1", "tri2" or a :class:`TractionLaw` (e.g.
     from :func:`tabulated_law`).  ``level``: grid density (2 = default, < 0.3 % against M-D-n);
-    ``estimate_error``: also solve at level/2 and report the difference.
+    ``estimate_error``: also solve at level/2 (or 3 level/4 if that path stalls) and report the
+    difference (NaN if neither solves).
     """
     law = get_law(law)
     n, lam = float(n), float(Lambda)
@@ -643,9 +668,12 @@ def elastic_pulloff(n, Lambda, law="dugdale", level=2.0, estimate_error=False):
     plan = _plan(n, lam, law)
     best, solver, _ = _solve(n, lam, law, plan, level)
     err = np.nan
-    if estimate_error:
-        coarse = _solve(n, lam, law, plan, 0.5 * level)[0]
-        err = abs(best.f - coarse.f) / abs(best.f)
+    for coarse_level in (0.5 * level, 0.75 * level) if estimate_error else ():
+        try:
+            err = abs(best.f - _solve(n, lam, law, plan, coarse_level)[0].f) / abs(best.f)
+            break
+        except _NoConvergence:
+            continue
     return ElasticPulloff(
         law=law.name, n=n, Lambda=lam, kappa=float(kappa_from_lambda(n, lam)), ratio=float(best.f),
         pulloff_nd=float(best.f * n ** (2.0 / n) * lam ** ((n - 2.0) / n)), error_estimate=float(err),
