@@ -77,7 +77,15 @@ def _tail(D, x_end):
     return integrate.quad(lambda t: lj(D + t), x_end**2, np.inf, limit=200)[0]
 
 
-def pulloff_ratio(kappa, x_end=6.0, nodes=241, d_start=3.0, ds0=0.05):
+def pulloff_ratio(kappa, **kw):
+    """See :func:`_pulloff_ratio` (single-threaded BLAS: small systems, shared machines)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _pulloff_ratio(kappa, **kw)
+
+
+def _pulloff_ratio(kappa, x_end=6.0, nodes=241, d_start=3.0, ds0=0.05):
     """Max tension f = F/F_rigid,Dugdale along the equilibrium path (n = 2).
 
     Pseudo-arc-length continuation in (g, D) with the norm ds^2 = mean(dg^2) + dD^2, from

@@ -83,7 +83,8 @@ def test_auto_uses_elastic_above_the_boundary_and_says_so(law):
     h = np.array([0.3, 0.5, 1.0, 3.0, 8.0]) * NM
     lam = M.transition_parameter(n, Q, E, W, h)
     F, used = M.pulloff_with_model(law, n, Q, E, W, h, mode="auto")
-    elastic = lam > M.lambda_boundary(n)
+    elastic = lam > M.rigid_boundary(n, law)
+    assert elastic.any() and not elastic.all()
     assert list(used) == ["elastic" if e else "rigid" for e in elastic]
     assert np.allclose(F[elastic], M.pulloff_force(n, Q, E, W, h[elastic], potential=law, model="elastic"))
     assert np.allclose(F[~elastic], M.pulloff_force(n, Q, E, W, h[~elastic], potential=law, model="rigid"))
@@ -94,6 +95,18 @@ def test_auto_uses_elastic_above_the_boundary_and_says_so(law):
     assert set(M.work_of_adhesion_with_model(law, F, n, Q, E, h, mode="mdn")[1]) == {"elastic"}
     assert set(M.work_of_adhesion_with_model("dugdale", F, n, Q, E, h, mode="mdn")[1]) == {"mdn"}
     assert set(M.work_of_adhesion_with_model(law, F, n, Q, E, h, mode="rigid")[1]) == {"rigid"}
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_law_boundary_is_the_5_percent_criterion(law):
+    """Each law's own rigid-regime boundary: rigid exceeds elastic by 5 % there (for Dugdale
+    Eq. 13 gives this within 2 %; applied to Tri1 at n = 12 Eq. 13 would accept 28 %)."""
+    n = np.array([2.0, 3.5, 5.0, 8.0, 12.0, 20.0])
+    lb = M.rigid_boundary(n, law)
+    r = M.pulloff_nd(n, lb, potential=law, model="rigid") / M.pulloff_nd(n, lb, potential=law, model="elastic")
+    assert np.allclose(r, 1.05, atol=2e-3)
+    below = M.pulloff_nd(n, 0.5 * lb, potential=law, model="rigid") / M.pulloff_nd(n, 0.5 * lb, potential=law, model="elastic")
+    assert np.all(below < 1.05)
 
 
 @pytest.mark.slow

@@ -12,7 +12,8 @@ pulloff_force(n, Q, E_star, W, h, potential="dugdale", model="mdn", exact=False)
 work_of_adhesion(F_p, n, Q, E_star, h, potential="dugdale", model="mdn", exact=False)
 lambda_from_g(G, n, potential="dugdale", model="mdn", exact=False)
 model_used(n, Q, E_star, h, W=None, F_p=None, potential="dugdale")
-    models: "rigid", "mdn" (Dugdale), "elastic" (any law), "auto" (rigid below Eq. 13, else elastic)
+    models: "rigid", "mdn" (Dugdale), "elastic" (any law), "auto" (rigid below rigid_boundary(n, law),
+    the 5 % boundary: Eq. 13 for Dugdale, the law's own for L-J, Tri1, Tri2; else elastic)
 pulloff_with_model(law, n, Q, E_star, W, h, mode="auto"), work_of_adhesion_with_model(law, F_p, ...)
     values and the model that made each ("rigid" / "mdn" / "elastic"), pipeline solver_mode names
 elastic_pulloff(n, Lambda, law, level=2, estimate_error=False), elastic_path(n, Lambda, law)
@@ -38,6 +39,7 @@ from .api import (
     pulloff_force,
     pulloff_nd,
     pulloff_with_model,
+    rigid_boundary,
     work_of_adhesion,
     work_of_adhesion_with_model,
 )
@@ -85,6 +87,7 @@ __all__ = [
     "build_table",
     "pulloff_with_model",
     "work_of_adhesion_with_model",
+    "rigid_boundary",
     "elastic_pulloff",
     "elastic_path",
     "ElasticPulloff",

@@ -3,7 +3,10 @@
 Models: "rigid" (Eq. 12 and the Sec. 4.3 laws, closed forms), "mdn" (Dugdale only, Eqs. 9-11),
 "elastic" (any law: M-D-n for Dugdale, the elastic solver of :mod:`.elastic_contact` for L-J,
 Tri1, Tri2 through its table :mod:`.elastic_tables`, direct solves with exact=True) and "auto"
-(rigid where Lambda < Lambda_b(n) (Eq. 13), else the elastic model of the law).
+(rigid where Lambda < Lambda_b, else the elastic model of the law).  Lambda_b is the paper's 5 %
+boundary of the rigid limit: Eq. 13 for Dugdale, and for each other law its own boundary from the
+elastic table (Eq. 13 was fitted for Dugdale: applied to Tri1 it would accept rigid errors up to
+28 %, to L-J and Tri2 up to 7-8 %).
 
 Forward:  F_p = pi P~(n, Lambda) P*,  P* = (Q^3 W^(n+1) E*^(n-2))^(1/(2n-1))     (Eqs. 6, 8)
 Inverse:  G = F_p / (pi E* h^(1+1/n) Q^(1/n)) = P~(n, Lambda) Lambda^((n+1)/n)  is strictly
@@ -28,14 +31,14 @@ import numpy as np
 
 from . import _validate as V
 from .boundary import lambda_boundary
-from .elastic_tables import log_ratio_to_mdn
+from .elastic_tables import lambda_boundary_law, log_ratio_to_mdn
 from .mdn import pulloff_mdn_exact
 from .rigid import rigid_pulloff_nd_raw, rigid_pulloff_ratio
 from .scaling import _log_lambda, log_force_scale, log_g_group, work_from_lambda
 from .tables import log_pulloff_fast
 
 __all__ = ["pulloff_nd", "pulloff_force", "work_of_adhesion", "model_used", "lambda_from_g",
-           "pulloff_with_model", "work_of_adhesion_with_model"]
+           "pulloff_with_model", "work_of_adhesion_with_model", "rigid_boundary"]
 
 #: Lambda above which the direct elastic solve is not run (exact=True): every law is within
 #: 0.1 % of M-D-n there (JKR limit) and the table's end value is used.
@@ -67,6 +70,14 @@ def _elastic_nd(n, lam, pot, exact):
     return out
 
 
+def rigid_boundary(n, potential="dugdale"):
+    """Lambda_b(n) below which model="auto" uses the rigid limit of ``potential`` (5 % criterion):
+    Eq. 13 for Dugdale, the law's own boundary (elastic table) for L-J, Tri1, Tri2."""
+    pot = V.potential(potential)
+    n = V.exponent(n)
+    return _out(lambda_boundary(n) if pot == "dugdale" else lambda_boundary_law(pot, n))
+
+
 def _elastic_model_nd(n, lam, pot, exact):
     return _mdn_nd(n, lam, exact) if pot == "dugdale" else _elastic_nd(n, lam, pot, exact)
 
@@ -92,7 +103,7 @@ def pulloff_nd(n, Lambda, potential="dugdale", model="mdn", exact=False):
     if mdl in ("mdn", "elastic"):
         return _out(_elastic_model_nd(n, lam, pot, exact))
     out = np.empty(n.shape)
-    rig = lam < lambda_boundary(n)
+    rig = lam < rigid_boundary(n, pot)
     out[rig] = rigid_pulloff_nd_raw(n[rig], lam[rig], pot)
     out[~rig] = _elastic_model_nd(n[~rig], lam[~rig], pot, exact)
     return _out(out)
@@ -190,7 +201,7 @@ def _x_elastic_model(log_g, n, pot, exact):
 
 def _x_auto(log_g, n, exact, pot="dugdale"):
     x = _x_rigid(log_g, n, pot)
-    rig = x < np.log(lambda_boundary(n))
+    rig = x < np.log(rigid_boundary(n, pot))
     x = x.copy()
     x[~rig] = _x_elastic_model(log_g[~rig], n[~rig], pot, exact)
     return x, rig
@@ -239,7 +250,8 @@ def model_used(n, Q, E_star, h, W=None, F_p=None, potential="dugdale"):
     """Boolean mask: True where model="auto" uses the rigid solution of ``potential``.
 
     Give exactly one of W (forward, pulloff_force: Lambda(W, h) < Lambda_b(n)) or F_p
-    (inverse, work_of_adhesion: the rigid solution of the law has Lambda < Lambda_b(n)).
+    (inverse, work_of_adhesion: the rigid solution of the law has Lambda < Lambda_b(n));
+    Lambda_b from :func:`rigid_boundary` (Eq. 13 for Dugdale).
     """
     if (W is None) == (F_p is None):
         raise ValueError("give exactly one of W (forward) or F_p (inverse)")
@@ -248,10 +260,10 @@ def model_used(n, Q, E_star, h, W=None, F_p=None, potential="dugdale"):
     Q, E_star, h = (V.positive(k, v) for k, v in (("Q", Q), ("E_star", E_star), ("h", h)))
     if W is not None:
         W = V.positive("W", W)
-        return _out(np.asarray(_log_lambda(n, Q, E_star, W, h) < np.log(lambda_boundary(n))))
+        return _out(np.asarray(_log_lambda(n, Q, E_star, W, h) < np.log(rigid_boundary(n, pot))))
     F_p = V.positive("F_p", F_p)
     x = _x_rigid(log_g_group(F_p, n, Q, E_star, h), n, pot)
-    return _out(np.asarray(x < np.log(lambda_boundary(np.broadcast_to(n, x.shape)))))
+    return _out(np.asarray(x < np.log(rigid_boundary(np.broadcast_to(n, x.shape), pot))))
 
 
 def _mode(mode, pot):
@@ -272,8 +284,8 @@ def _names(rigid_mask, mdl, pot):
 def pulloff_with_model(law, n, Q, E_star, W, h, mode="auto", exact=False):
     """Pull-off F_p [N] and the model that made each value ("rigid", "mdn" or "elastic").
 
-    law: traction law; mode: pipeline solver_mode ("auto": rigid where Lambda < Lambda_b(n),
-    Eq. 13, else the law's elastic model; "mdn": always the elastic model (M-D-n for Dugdale,
+    law: traction law; mode: pipeline solver_mode ("auto": rigid where Lambda < Lambda_b(n)
+    (:func:`rigid_boundary`; Eq. 13 for Dugdale), else the law's elastic model; "mdn": always the elastic model (M-D-n for Dugdale,
     the elastic solver otherwise); "rigid"); arrays broadcast.
     """
     pot = V.potential(law)

@@ -1,15 +1,15 @@
 """Fast path: tabulated elastic pull-off of the L-J, Tri1 and Tri2 laws over (n, Lambda).
 
 Tabulated: y_law(n, Lambda) = log(P~_law / P~_MDn), the elastic pull-off of the law (direct
-solve, :mod:`.elastic_contact`, grid level 2) over the M-D-n (Dugdale) pull-off at the same
-(n, Lambda); the fast path is P~_law = P~_MDn(fast table, :mod:`.tables`) * exp(y_law).  y is
+solve, :mod:`.elastic_contact`, grid level 4: within 0.13 % of M-D-n for the Dugdale law) over the
+M-D-n (Dugdale) pull-off at the same (n, Lambda); the fast path is P~_law = P~_MDn(fast table, :mod:`.tables`) * exp(y_law).  y is
 bounded and smooth: log of the rigid ratio (paper Fig. 8) for Lambda -> 0, 0 for Lambda -> inf
 (JKR: only W_A matters).  Grid: 16 nodes uniform in log n over [2, 20] x 32 nodes uniform in
 log Lambda over [1e-3, 30]; bicubic interpolating spline.  Outside the Lambda range y is held at
 its end value: below 1e-3 the elastic corrections are < 2e-5 (rigid limit), above 30 every law
 is within 0.1 % of M-D-n (measured when the table was built; both in the data file).
 
-Building the table takes ~10 min on one core (1536 direct solves), so the table is committed
+Building the table takes ~5-10 min on one core (1536 direct solves), so the table is committed
 as ``data/elastic_pulloff_table.npz`` (written by ``python -m
 pipeline.mechanics.build_elastic_table``), keyed by a hash of the grid definition and the
 solver version.  If that file is missing or its key does not match, the
@@ -34,13 +34,13 @@ from scipy.interpolate import RectBivariateSpline
 from .mdn import pulloff_mdn_exact
 
 __all__ = ["TABLE_LAWS", "ELASTIC_TABLE_SPEC", "DATA_FILE", "build_elastic_table", "load_elastic_table",
-           "log_ratio_to_mdn", "table_error"]
+           "log_ratio_to_mdn", "lambda_boundary_law", "table_error"]
 
 log = logging.getLogger(__name__)
 
 TABLE_LAWS = ("lj", "tri1", "tri2")
-SOLVER_VERSION = "elastic-2"
-ELASTIC_TABLE_SPEC = dict(n_lo=2.0, n_hi=20.0, n_nodes=16, lam_lo=1e-3, lam_hi=30.0, lam_nodes=32, level=2.0, k=3)
+SOLVER_VERSION = "elastic-4"
+ELASTIC_TABLE_SPEC = dict(n_lo=2.0, n_hi=20.0, n_nodes=16, lam_lo=1e-3, lam_hi=30.0, lam_nodes=32, level=4.0, k=3)
 DATA_FILE = Path(__file__).with_name("data") / "elastic_pulloff_table.npz"
 
 
@@ -125,7 +125,7 @@ def load_elastic_table():
         data = _read(path)
         if data is not None:
             return data
-    log.warning("elastic pull-off table not found or out of date: building it (about 10 min, once)")
+    log.warning("elastic pull-off table not found or out of date: building it (5-10 min, once)")
     return build_elastic_table(_cache_path())
 
 
@@ -148,6 +148,37 @@ def log_ratio_to_mdn(law, n, log_lam, dx=0):
     if dx:
         out = np.where((log_lam < x[0]) | (log_lam > x[-1]), 0.0, out)
     return out
+
+
+@functools.lru_cache(maxsize=None)
+def _boundary_nodes(law):
+    """log n and log Lambda_b,law(n) on 181 nodes: where the rigid pull-off of the law exceeds
+    its elastic pull-off by 5 % (the paper's criterion behind Eq. 13, applied to this law)."""
+    from scipy.optimize import brentq
+
+    from .rigid import rigid_pulloff_ratio
+    from .tables import log_pulloff_fast
+
+    s, x = grid()
+    ls = np.linspace(s[0], s[-1], 181)
+    out = np.empty(ls.size)
+    for i, l in enumerate(ls):
+        n = float(np.exp(l))
+        rig0 = np.log(float(rigid_pulloff_ratio(n, law))) + 2.0 / n * np.log(n)
+
+        def excess(xx):
+            el = float(log_pulloff_fast(n, xx)) + float(log_ratio_to_mdn(law, n, xx))
+            return rig0 + (n - 2.0) / n * xx - el - np.log(1.05)
+
+        out[i] = brentq(excess, x[0], x[-1], xtol=1e-10)
+    return ls, out
+
+
+def lambda_boundary_law(law, n):
+    """Lambda_b of a non-Dugdale law: the rigid limit of the law is within 5 % of its elastic
+    pull-off for Lambda < Lambda_b,law(n) (from the table; for Dugdale use Eq. 13)."""
+    ls, lb = _boundary_nodes(law)
+    return np.exp(np.interp(np.log(np.asarray(n, float)), ls, lb))
 
 
 def table_error(law, n, lam):
