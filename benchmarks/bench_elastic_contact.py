@@ -43,6 +43,7 @@ def dugdale_table(quick):
     print("\n1. Direct solve, Dugdale law, against M-D-n (exact), n 2-20 x Lambda 0.01-30")
     print(f"{'level':>6}{'cases':>7}{'nodes (median)':>16}{'time median':>13}{'time max':>10}{'err median':>12}{'err max':>10}")
     print("-" * 74)
+    verdict = ""
     for lev in levels:
         ts, errs, nodes = [], [], []
         for n, lam in _cases(quick):
@@ -52,6 +53,11 @@ def dugdale_table(quick):
             errs.append(abs(r.pulloff_nd / float(pulloff_mdn_exact(n, lam)) - 1.0))
         print(f"{lev:>6g}{len(ts):>7}{np.median(nodes):>16.0f}{np.median(ts):>11.3f} s{max(ts):>8.2f} s"
               f"{np.median(errs):>11.2e}{max(errs):>10.2e}")
+        if lev == 2.0:
+            ok = max(ts) <= 1.0 and max(errs) <= 5e-3
+            verdict = (f"default level 2: every pull-off <= {max(ts):.2f} s at <= {100 * max(errs):.2f} % "
+                       f"(target <= 1 s at <= 0.5 %) [{'OK' if ok else 'MISS'}]")
+    print(verdict)
     # the error estimate (level/2 re-solve) against the true error, default level
     est = [(elastic_pulloff(n, lam, "dugdale", estimate_error=True), n, lam) for n, lam in _cases(quick)]
     ratio = [abs(r.pulloff_nd / float(pulloff_mdn_exact(n, lam)) - 1) / max(r.error_estimate, 1e-12) for r, n, lam in est]

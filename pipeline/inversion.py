@@ -30,8 +30,10 @@ below 2.  Policy (``n_policy`` attribute in the output):
 
 Solver modes apply to every law: "rigid" (closed forms), "mdn" (always the full elastic
 model: M-D-n for Dugdale, the elastic solver of pipeline.mechanics.elastic_contact for L-J,
-Tri1, Tri2) and "auto" (rigid where Lambda < Lambda_b(n), Eq. 13, else the full model); every
-law's group records which model made each W_A (model_used).  The L-J law is tied to Dugdale by z0 = h / 0.974
+Tri1, Tri2) and "auto" (rigid where Lambda < Lambda_b(n), the 5 % boundary of the law:
+Eq. 13 for Dugdale, pipeline.mechanics.rigid_boundary for the others; else the full model).
+Every law's group records which model made each W_A (model_used; the internal keys mdn_used /
+mdn_fraction mean "full model" for every law).  The L-J law is tied to Dugdale by z0 = h / 0.974
 (equal peak stress and W_A): its h column is the Dugdale-equivalent h.  For Tri2, h is
 the separation of the peak stress; the full range is 2h.
 """

@@ -226,12 +226,15 @@ class _NoConvergence(RuntimeError):
 _LJ_FLOOR = -0.8 / 0.974  # s = -0.8 z0: L-J gaps are kept above this (d = 0 is singular)
 
 
-def _newton(sys: _System, y, D, row, rhs, tol=1e-10, max_iter=30):
+def _newton(sys: _System, y, D, row, rhs, tol=1e-10, max_iter=30, patient=False):
     """Semi-smooth Newton on R(y, D) = 0 and row . (y, D) = rhs; backtracking on ||R||^2 (the
     contact edge and the law's kinks make R piecewise smooth).  Returns (y, D, f, iterations).
     Residuals are weighted by 1/(1 + |D| + x^n) (x^n is huge far out for large n).  Gives up
     early (step below 1/1000 of the Newton step, or no halving of the residual in 8 iterations):
-    the callers then take a shorter step along the path."""
+    the callers then take a shorter step along the path.  ``patient`` (a start far from the
+    solution, no shorter step possible): 60 iterations, 30 halvings, no early exit."""
+    if patient:
+        max_iter = 60
     y = np.array(y, float)
     D = float(D)
     weight = 1.0 / (1.0 + abs(D) + sys.tip)
@@ -248,7 +251,7 @@ def _newton(sys: _System, y, D, row, rhs, tol=1e-10, max_iter=30):
         if res <= tol:
             return y, D, f, it
         history.append(res)
-        if not np.isfinite(res) or (len(history) > 8 and res > 0.5 * history[-9]):
+        if not np.isfinite(res) or (not patient and len(history) > 8 and res > 0.5 * history[-9]):
             break
         M[:-1, :-1] = J
         M[:-1, -1] = -1.0
@@ -266,7 +269,7 @@ def _newton(sys: _System, y, D, row, rhs, tol=1e-10, max_iter=30):
             if np.any(neg):
                 alpha = min(1.0, 0.9 * float(np.min((y[neg] - _LJ_FLOOR) / -dy[neg])))
         merit = float(R @ R + c * c)
-        for _ in range(10):
+        for _ in range(30 if patient else 10):
             yn, Dn = y + alpha * dy, D + alpha * dD
             Rn, cn, _, _ = resid(yn, Dn, False)
             if float(Rn @ Rn + cn * cn) <= (1.0 - 1e-4 * alpha) * merit:
@@ -396,7 +399,7 @@ class _PathSolver:
             knots = np.delete(knots, j)
         return knots
 
-    def solve(self, psi, guess: _Solution, theta=1.0, prev=None, remesh=3):
+    def solve(self, psi, guess: _Solution, theta=1.0, prev=None, remesh=3, patient=False):
         """Equilibrium at psi from ``guess`` (and the secant through ``prev``, the state before
         it): states are warped so that their knots line up with the predicted ones, and the grid
         is rebuilt until the knots sit in its refined zones."""
@@ -426,7 +429,7 @@ class _PathSolver:
                 y0[inside] = np.minimum(y0[inside], -1e-9)
             row = np.zeros(grid.x.size + 1)
             row[k_pin] = 1.0  # psi < 0: y = pin at r = a;  psi >= 0: y = pin + psi at the apex
-            y, D, f, it = _newton(self.system(grid, theta), y0, D0, row, self.pin + max(psi, 0.0))
+            y, D, f, it = _newton(self.system(grid, theta), y0, D0, row, self.pin + max(psi, 0.0), patient=patient)
             self.evaluations += 1
             new = self.crossings(grid.x, y)
             sol = _Solution(psi, grid.x, y, D, f, new, it)
@@ -459,7 +462,7 @@ class _PathSolver:
     def _start(self, a0):
         D_h = -0.5 * self.n * sp.beta(0.5 * self.n, 0.5) * a0**self.n
         x0 = np.array([0.0, a0, self.x_max])
-        sol = self.solve(-a0, _Solution(-a0, x0, D_h + x0**self.n, D_h, 0.0, np.zeros(0)), theta=0.0)
+        sol = self.solve(-a0, _Solution(-a0, x0, D_h + x0**self.n, D_h, 0.0, np.zeros(0)), theta=0.0, patient=True)
         theta, dtheta = 0.0, 0.25
         while theta < 1.0:
             nxt = min(1.0, theta + dtheta)
