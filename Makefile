@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 CORES  ?= 2
 
-.PHONY: run test test-all test-cluster samples bench lint report clean
+.PHONY: run test test-all test-cluster samples bench elastic-table lint report clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -44,6 +44,9 @@ samples: $(BIN)/.installed      ## regenerate data_samples/ and config/tips/ fro
 
 bench: $(BIN)/.installed        ## print the run-time vs error tables
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+elastic-table: $(BIN)/.installed  ## rebuild pipeline/mechanics/data/elastic_pulloff_table.npz (~5 min; commit it)
+	OMP_NUM_THREADS=1 $(BIN)/python -m pipeline.mechanics.build_elastic_table
 
 report: $(BIN)/.installed       ## HTML report of a finished run (all figures and CSVs)
 	$(BIN)/snakemake --report results/report.html

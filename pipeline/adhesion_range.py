@@ -592,6 +592,9 @@ def write_range_h5(out_h5, inv, results, *, tip="", source=""):
                 write_dataset(g, "model_used", dl["model_used"], "1", "Dugdale model per h")
                 if "maugis_lambda" in dl:
                     write_dataset(g, "maugis_lambda", dl["maugis_lambda"], "1", "Maugis parameter at the central W_A(h)")
+            for law, dlaw in d["laws"].items():  # which model made the other laws' W_A(h)
+                if law != "dugdale" and "model_used" in dlaw:
+                    write_dataset(g, f"model_used_{law}", dlaw["model_used"], "1", f"{law} model per h (rigid or elastic)")
         gl_all = create_group(f, "laws")
         for law, res in results.items():
             gl = create_group(gl_all, law, convention=CONVENTIONS[law])

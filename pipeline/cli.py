@@ -10,6 +10,7 @@
     python -m pipeline summary   --out-csv results/summary.csv RANGE_H5...
     python -m pipeline validate  [--workflow-config config/config.yaml]
     python -m pipeline make-samples --out data_samples
+    python -m pipeline mechanics-figure --out fig7.png [--n 2,5] [--fast]
 
 Each subcommand loads and validates the tip YAML (units -> SI), then calls one
 function of the science package.  Errors print one line naming the file and the
@@ -119,6 +120,15 @@ def cmd_rigid_laws_figure(a):
     plot_rigid_laws(a.out_png)
 
 
+def cmd_mechanics_figure(a):
+    from pipeline.figures_mechanics import plot_fig7
+
+    ns = tuple(float(v) for v in a.n.split(","))
+    if not 1 <= len(ns) <= 4:
+        raise ValueError(f"--n: give 1 to 4 comma-separated power indices (got {a.n!r})")
+    plot_fig7(a.out, ns=ns, direct=not a.fast)
+
+
 def cmd_validate(a):
     from pipeline.config import discover_tips, load_tip_config, load_workflow_config
 
@@ -194,6 +204,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = stage("rigid-laws-figure", cmd_rigid_laws_figure, tip=False)
     s.add_argument("--out-png", required=True)
+
+    s = stage("mechanics-figure", cmd_mechanics_figure, tip=False)
+    s.add_argument("--out", required=True, help="PNG: pull-off vs h for the four laws, elastic and rigid (paper Fig. 7)")
+    s.add_argument("--n", default="2,5", help="comma-separated power indices (default 2,5)")
+    s.add_argument("--fast", action="store_true", help="elastic values from the table instead of direct solves")
 
     s = stage("validate", cmd_validate, tip=False)
     s.add_argument("--workflow-config", default="config/config.yaml")

@@ -111,8 +111,9 @@ def plot_w_of_h(range_h5, out_png, *, tip: str = ""):
         ax.set_xlim(h_nm[0], h_nm[-1])
         _plain_log_axis(ax.xaxis)
         _plain_log_axis(ax.yaxis)
-        if law == "dugdale" and rng["solver_mode"] == "auto":
-            ax.text(0.98, 0.98, "solver auto: rigid where $\\Lambda < \\Lambda_b(n)$, else M-D-n\n(a step of <= 5 % where it switches)",
+        if rng["solver_mode"] == "auto":
+            full = "M-D-n" if law == "dugdale" else "elastic solver"
+            ax.text(0.98, 0.98, f"solver auto: rigid where $\\Lambda < \\Lambda_b(n)$, else {full}\n(a step of <= 5 % where it switches)",
                     transform=ax.transAxes, ha="right", va="top", fontsize=6.5, color="0.3")
         ax.set_xlabel("adhesion range h (nm)")
         ax.set_ylabel("work of adhesion W$_A$ (mJ/m$^2$)")

@@ -28,8 +28,12 @@ below 2.  Policy (``n_policy`` attribute in the output):
   draws with n > 20 or non-finite inputs give NaN and are counted in
   ``valid_fraction``.
 
-Solver modes apply to the Dugdale law only ("mdn", "rigid", "auto"); the L-J, Tri1
-and Tri2 laws are rigid-only.  The L-J law is tied to Dugdale by z0 = h / 0.974
+Solver modes apply to every law: "rigid" (closed forms), "mdn" (always the full elastic
+model: M-D-n for Dugdale, the elastic solver of pipeline.mechanics.elastic_contact for L-J,
+Tri1, Tri2) and "auto" (rigid where Lambda < Lambda_b(n), the 5 % boundary of the law:
+Eq. 13 for Dugdale, pipeline.mechanics.rigid_boundary for the others; else the full model).
+Every law's group records which model made each W_A (model_used; the internal keys mdn_used /
+mdn_fraction mean "full model" for every law).  The L-J law is tied to Dugdale by z0 = h / 0.974
 (equal peak stress and W_A): its h column is the Dugdale-equivalent h.  For Tri2, h is
 the separation of the peak stress; the full range is 2h.
 """
@@ -294,12 +298,12 @@ def _clip_samples(n, ln_q, s):
 def solve_w(F, n, q, e_star, h, law, mode, mech=None, exact=False):
     """W_A for broadcastable inputs; NaN where the inputs are out of the model's domain.
 
-    ``mode`` is the solver mode for Dugdale ("mdn", "rigid", "auto"); other laws are rigid.
+    ``mode`` is the solver mode ("mdn" = the law's full elastic model, "rigid", "auto").
     Out-of-domain inputs (the mechanics raises ValueError) are isolated row by row and
     element by element so that a single bad Monte-Carlo draw never stops the run.
     """
     m = _mechanics(mech)
-    model = mode if law == "dugdale" else "rigid"
+    model = "elastic" if (mode == "mdn" and law != "dugdale") else mode
     F, n, q, e_star, h = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (F, n, q, e_star, h)))
     out = np.full(F.shape, np.nan)
     ok = np.isfinite(F) & np.isfinite(n) & np.isfinite(q) & np.isfinite(e_star) & np.isfinite(h) & (F > 0)
@@ -353,8 +357,9 @@ def regime(W, n, q, e_star, h, mech=None):
     return lam, lam_b, valid
 
 
-def _model_used(F, n, q, e_star, h, mode, mech=None, exact=False):
-    """Which Dugdale model a call in ``mode`` uses: True where M-D-n.
+def _model_used(F, n, q, e_star, h, mode, mech=None, exact=False, law="dugdale"):
+    """Which model a call in ``mode`` uses for ``law``: True where the full elastic model
+    (M-D-n for Dugdale, the elastic solver for the other laws).
 
     In auto mode the mechanics decides with Lambda evaluated at the rigid W_A (the
     M-D-n correction is below 5 % where rigid is valid): reproduced here for the record.
@@ -371,9 +376,9 @@ def _model_used(F, n, q, e_star, h, mode, mech=None, exact=False):
     if not np.any(ok):
         return out
     if hasattr(m, "model_used"):
-        out[ok] = ~np.asarray(m.model_used(n[ok], q[ok], e_star[ok], h[ok], F_p=F[ok]), dtype=bool)
+        out[ok] = ~np.asarray(m.model_used(n[ok], q[ok], e_star[ok], h[ok], F_p=F[ok], potential=law), dtype=bool)
         return out
-    w_r = solve_w(F, n, q, e_star, h, "dugdale", "rigid", mech, exact)
+    w_r = solve_w(F, n, q, e_star, h, law, "rigid", mech, exact)
     _, _, valid = regime(w_r, n, q, e_star, h, mech)
     return ~valid & np.isfinite(w_r)
 
@@ -581,18 +586,18 @@ def run_inversion(
             w_c = solve_w(fo["F_p_mean"], n_c, q_c, E_star, h, law, solver_mode, mech, exact)
             w_s = solve_w(F_s, n_s, q_s, e_s, hm[None, :], law, solver_mode, mech, exact)
             lr = {"W_A": w_c, "samples": w_s}
+            lr["mdn_used"] = _model_used(fo["F_p_mean"], n_c, q_c, E_star, h, solver_mode, mech, exact, law)
+            if solver_mode == "auto":
+                used_s = _model_used(F_s, n_s, q_s, e_s, hm[None, :], "auto", mech, exact, law)
+                fin = np.isfinite(w_s)
+                cnt = fin.sum(axis=0)
+                frac = (used_s & fin).sum(axis=0) / np.maximum(cnt, 1)
+                lr["mdn_fraction"] = np.interp(np.log(h), np.log(hm), np.where(cnt > 0, frac, np.nan))
+            else:
+                lr["mdn_fraction"] = np.full(h.shape, 1.0 if solver_mode == "mdn" else 0.0)
             if law == "dugdale":
                 lam, lam_b, valid = regime(w_c, n_c, q_c, E_star, h, mech)
                 lr.update(Lambda=lam, Lambda_boundary=lam_b, rigid_valid=valid)
-                lr["mdn_used"] = _model_used(fo["F_p_mean"], n_c, q_c, E_star, h, solver_mode, mech, exact)
-                if solver_mode == "auto":
-                    used_s = _model_used(F_s, n_s, q_s, e_s, hm[None, :], "auto", mech, exact)
-                    fin = np.isfinite(w_s)
-                    cnt = fin.sum(axis=0)
-                    frac = (used_s & fin).sum(axis=0) / np.maximum(cnt, 1)
-                    lr["mdn_fraction"] = np.interp(np.log(h), np.log(hm), np.where(cnt > 0, frac, np.nan))
-                else:
-                    lr["mdn_fraction"] = np.full(h.shape, 1.0 if solver_mode == "mdn" else 0.0)
                 if np.isfinite(n_c) and n_c < N_MIN + N_NEAR_2_FOR_MAUGIS and hasattr(mech, "maugis_parameter"):
                     lr["maugis"] = np.asarray(mech.maugis_parameter(fit["R"], E_star, w_c, h), dtype=float)
             res["laws"][law] = lr
@@ -670,7 +675,7 @@ def run_inversion(
             write_dataset(gs, "ln_Q", dr["ln_Q"], "1", "sampled ln Q after clipping")
             write_dataset(gs, "n_clipped", dr["n_clipped"], "1", "draw had n < 2 and was clipped")
             for law, lr in res["laws"].items():
-                gl = create_group(g, law, convention=CONVENTIONS[law], model=(solver_mode if law == "dugdale" else "rigid"))
+                gl = create_group(g, law, convention=CONVENTIONS[law], model=solver_mode)
                 w_s = lr["samples"]
                 write_dataset(gl, "W_A", lr["W_A"], "J/m^2", "W_A(h) from the best estimates")
                 write_dataset(gl, "W_A_samples", w_s.astype(np.float32), "J/m^2",
@@ -682,13 +687,15 @@ def run_inversion(
                     write_dataset(gl, f"W_A_p{int(p)}", interp_loglog(hm, row, h), "J/m^2",
                                   f"{p:g}th percentile of the MC samples (on h_grid)")
                 write_dataset(gl, "valid_fraction", valid_frac, "1", "fraction of MC samples with a finite W_A")
+                full = "mdn" if law == "dugdale" else "elastic"
+                used = np.where(lr["mdn_used"], full, "rigid").astype(object)
+                write_dataset(gl, "model_used", used, "1", "model used for the central W_A per h (rigid, mdn or elastic)")
+                write_dataset(gl, f"{full}_fraction", lr["mdn_fraction"], "1",
+                              f"fraction of MC samples solved with the full model ({full})")
                 if law == "dugdale":
                     write_dataset(gl, "Lambda", lr["Lambda"], "1", "transition parameter at the central W_A(h)")
                     write_dataset(gl, "Lambda_boundary", lr["Lambda_boundary"], "1", "Eq. 13 boundary at n_used")
                     write_dataset(gl, "rigid_valid", lr["rigid_valid"], "1", "Lambda < Lambda_b(n)")
-                    used = np.where(lr["mdn_used"], "mdn", "rigid").astype(object)
-                    write_dataset(gl, "model_used", used, "1", "model used for the central W_A per h")
-                    write_dataset(gl, "mdn_fraction", lr["mdn_fraction"], "1", "fraction of MC samples solved with M-D-n")
                     if "maugis" in lr:
                         write_dataset(gl, "maugis_lambda", lr["maugis"], "1", "Maugis parameter (n ~ 2)")
     dt = time.perf_counter() - t0

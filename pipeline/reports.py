@@ -85,6 +85,8 @@ def tip_report_rows(rng: dict) -> tuple[list, list]:
             cols += ["h_tri2_full_range_nm"]
         if law == "lj":
             cols += ["z0_lj_nm"]
+        if law != "dugdale":
+            cols += [f"model_{law}_at_estimate"]
     cols += ["h_estimate_dugdale_nm", "Lambda_at_estimate", "Lambda_boundary", "rigid_valid", "model_used_at_estimate",
              "maugis_lambda_at_estimate", "ci_level"]
     rows = []
@@ -129,6 +131,8 @@ def tip_report_rows(rng: dict) -> tuple[list, list]:
                     row["h_tri2_full_range_nm"] = 2.0 * _nm(iv["h_cross"])
                 if law == "lj":
                     row["z0_lj_nm"] = _nm(iv["h_cross"]) * LJ_Z0_OVER_H
+            if law != "dugdale" and f"model_used_{law}" in d and np.isfinite(hv):
+                row[f"model_{law}_at_estimate"] = str(d[f"model_used_{law}"][int(np.argmin(np.abs(np.log(h) - np.log(hv))))])
         row["h_estimate_dugdale_nm"] = _nm(h_est_dug)
         if "Lambda" in d:
             row["Lambda_at_estimate"] = _interp_ln(h, d["Lambda"], h_est_dug)
@@ -161,8 +165,21 @@ SUMMARY_COLUMNS = [
     "W_A_ref_max_rel_change_over_h", "n_intervals_used", "n_intervals_crossing", "chi2", "dof", "p_value",
     "ci_scale_birge", "between_interval_scatter_percent", "ci_widening_h", "ci_widening_W_A",
     "h_change_per_reference_percent", "ci_level",
-    "h_convention", "status", "notes",
+    "h_convention", "model_at_estimate", "status", "notes",
 ]
+
+
+def models_at(rng: dict, law: str, h_value: float) -> str:
+    """Which model(s) made the law's W_A(h) of the intervals at h_value: "rigid", "mdn",
+    "elastic", or e.g. "rigid (2), elastic (1)" when the intervals differ."""
+    if not np.isfinite(h_value):
+        return ""
+    key = "model_used" if law == "dugdale" else f"model_used_{law}"
+    h = np.asarray(rng["h"], float)
+    j = int(np.argmin(np.abs(np.log(h) - np.log(h_value))))
+    used = [str(d[key][j]) for d in rng["intervals"].values() if key in d]
+    names = sorted(set(used))
+    return names[0] if len(names) == 1 else ", ".join(f"{m} ({used.count(m)})" for m in names)
 
 
 def summary_rows(rng: dict) -> list:
@@ -170,7 +187,7 @@ def summary_rows(rng: dict) -> list:
     for law in rng["law_order"]:
         L = rng["laws"][law]
         g = L.get("global", {})
-        row = {"tip": rng["tip"], "law": law, "solver_mode": rng["solver_mode"] if law == "dugdale" else "rigid",
+        row = {"tip": rng["tip"], "law": law, "solver_mode": rng["solver_mode"],
                "ci_level": CI_LEVEL, "h_convention": CONVENTIONS[law]}
         notes = []
         status = g.get("status", "no_reference") if g else "no_reference"
@@ -233,6 +250,8 @@ def summary_rows(rng: dict) -> list:
             notes.append("L-J range in the z0 = h/0.974 convention")
         if law == "tri2":
             notes.append("h = Dugdale-equivalent (peak-stress) h; full range 2h in h_full_range_nm (paper Table 1 uses 2h)")
+        if status == "ok":
+            row["model_at_estimate"] = models_at(rng, law, float(g["h"]))
         row["status"] = status
         row["notes"] = " | ".join(n for n in notes if n)
         rows.append(row)

@@ -125,7 +125,7 @@ def test_auto_boundary_jump_is_at_most_5_percent():
         (dict(n=3.0, Lambda=1.0, potential="morse"), "unknown potential"),
         (dict(n=3.0, Lambda=1.0, model="fem"), "unknown model"),
         (dict(n=3.0, Lambda=1.0, potential="lj", model="mdn"), "only for the Dugdale"),
-        (dict(n=3.0, Lambda=1.0, potential="tri1", model="auto"), "only for the Dugdale"),
+        (dict(n=3.0, Lambda=1.0, potential="tri1", model="mdn"), "use model='elastic'"),
     ],
 )
 def test_out_of_domain_raises(kwargs, match):

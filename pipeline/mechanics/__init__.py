@@ -11,7 +11,13 @@ pulloff_nd(n, Lambda, potential="dugdale", model="mdn", exact=False)
 pulloff_force(n, Q, E_star, W, h, potential="dugdale", model="mdn", exact=False)
 work_of_adhesion(F_p, n, Q, E_star, h, potential="dugdale", model="mdn", exact=False)
 lambda_from_g(G, n, potential="dugdale", model="mdn", exact=False)
-model_used(n, Q, E_star, h, W=None, F_p=None)
+model_used(n, Q, E_star, h, W=None, F_p=None, potential="dugdale")
+    models: "rigid", "mdn" (Dugdale), "elastic" (any law), "auto" (rigid below rigid_boundary(n, law),
+    the 5 % boundary: Eq. 13 for Dugdale, the law's own for L-J, Tri1, Tri2; else elastic)
+pulloff_with_model(law, n, Q, E_star, W, h, mode="auto"), work_of_adhesion_with_model(law, F_p, ...)
+    values and the model that made each ("rigid" / "mdn" / "elastic"), pipeline solver_mode names
+elastic_pulloff(n, Lambda, law, level=2, estimate_error=False), elastic_path(n, Lambda, law)
+    direct elastic solve for any traction law (elastic_contact); get_law(name), tabulated_law(s, tau)
 lambda_boundary(n), lambda_boundary_solved(n, tol=0.05), rigid_error(n, Lambda, exact=True)
 transition_parameter(n, Q, E_star, W, h), maugis_parameter(R, E_star, W, h),
 maugis_from_transition(Lambda), q_from_rs(n, R, S=1), r_from_q(n, Q, S=1)
@@ -27,7 +33,18 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _validate
-from .api import lambda_from_g, model_used, pulloff_force, pulloff_nd, work_of_adhesion
+from .api import (
+    lambda_from_g,
+    model_used,
+    pulloff_force,
+    pulloff_nd,
+    pulloff_with_model,
+    rigid_boundary,
+    work_of_adhesion,
+    work_of_adhesion_with_model,
+)
+from .elastic_contact import ElasticPulloff, elastic_path, elastic_pulloff
+from .traction_laws import TractionLaw, get_law, tabulated_law
 from .boundary import lambda_boundary, lambda_boundary_solved, rigid_error
 from .mdn import MDNBranch, jkr_limit_nd, mdn_branch as _mdn_branch
 from .rigid import LJ_H_OVER_Z0, rigid_force_curve, rigid_optimal_gap, rigid_pulloff_ratio, traction
@@ -68,6 +85,15 @@ __all__ = [
     "traction",
     "LJ_H_OVER_Z0",
     "build_table",
+    "pulloff_with_model",
+    "work_of_adhesion_with_model",
+    "rigid_boundary",
+    "elastic_pulloff",
+    "elastic_path",
+    "ElasticPulloff",
+    "TractionLaw",
+    "get_law",
+    "tabulated_law",
 ]
 
 

@@ -9,7 +9,7 @@ LAMBDA_MIN, LAMBDA_MAX = 1e-6, 1e6
 _REL = 1e-12  # tolerance on the domain edges for round-off in derived quantities
 
 POTENTIALS = ("dugdale", "lj", "tri1", "tri2")
-MODELS = ("mdn", "rigid", "auto")
+MODELS = ("mdn", "rigid", "auto", "elastic")
 
 
 def positive(name, value):
@@ -61,9 +61,9 @@ def model(name, pot):
     key = str(name).lower()
     if key not in MODELS:
         raise ValueError(f"unknown model {name!r}; expected one of {MODELS}")
-    if key in ("mdn", "auto") and pot != "dugdale":
+    if key == "mdn" and pot != "dugdale":
         raise ValueError(
-            f"model={key!r} needs the elastic M-D-n solution, which exists only for the Dugdale "
-            f"potential (got potential={pot!r}); use model='rigid' and check model_used()"
+            f"model='mdn' is the M-D-n solution, which exists only for the Dugdale potential "
+            f"(got potential={pot!r}); use model='elastic' (elastic solver, any law) or 'rigid'"
         )
     return key
