@@ -39,10 +39,15 @@ def read_schema(path: Path) -> dict:
 def load_yaml(path) -> dict:
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"{path}: file not found")
+        raise ConfigError(f"{path}: file not found" + (" (it is a folder)" if path.is_dir() else ""))
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             data = yaml.safe_load(fh)
+    except UnicodeDecodeError as exc:
+        raw = path.read_bytes()
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"{path}: line {line}: byte 0x{raw[exc.start]:02x} is not UTF-8 (a Latin-1 'µ' or '°'?): save the "
+                          "file as UTF-8, or write the unit in ASCII ('um', 'deg')") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(data, dict):
@@ -185,6 +190,10 @@ def load_workflow_config(config) -> dict:
     g = cfg["h_grid"]
     if not 0 < g["min"] < g["max"]:
         raise ConfigError(f"{source}: h_grid: need 0 < min < max, got min={g['min']:g} m, max={g['max']:g} m")
+    rd = Path(str(cfg.get("results_dir", "results")))
+    if rd.exists() and not rd.is_dir():
+        raise ConfigError(f"{source}: results_dir: {str(rd)!r} is an existing file, not a folder; name a folder (or "
+                          "remove the file)")
     return cfg
 
 
@@ -224,7 +233,9 @@ def load_tip_config(path, check_files: bool = True) -> dict:
     """
     path = Path(path)
     raw = load_yaml(path)
+    raw.setdefault("tem", {})  # an absent section still gets its (unit-converted) defaults
     tip = validated(raw, TIP_SCHEMA, path)
+    _check_physical(tip, path)
     tip["name"] = path.stem
     tip["source"] = str(path)
     data_dir = Path(tip["data_dir"])
@@ -239,6 +250,9 @@ def load_tip_config(path, check_files: bool = True) -> dict:
     mat["u_E_star"] = mat["E_star_uncertainty"]
     if not (math.isfinite(mat["E_star"]) and mat["E_star"] > 0):
         raise ConfigError(f"{path}: materials: E* must be positive, got {mat['E_star']:g} Pa")
+    if mat["u_E_star"] >= mat["E_star"]:
+        raise ConfigError(f"{path}: materials.E_star_uncertainty ({mat['u_E_star'] * 1e-9:.3g} GPa) is not smaller than "
+                          f"E* ({mat['E_star'] * 1e-9:.3g} GPa)")
 
     names = [iv["name"] for iv in tip["intervals"]]
     dupes = sorted({n for n in names if names.count(n) > 1})
@@ -273,9 +287,45 @@ def load_tip_config(path, check_files: bool = True) -> dict:
 
     tip.setdefault("cantilever", {})["base_dir"] = str(data_dir)
     tip.setdefault("force_curves", {})["base_dir"] = str(data_dir)
-    tip.setdefault("tem", {})
-    tip["tem"] = _apply_defaults(tip["tem"], read_schema(TIP_SCHEMA)["properties"]["tem"], read_schema(TIP_SCHEMA))
     return tip
+
+
+# quantities that must be positive (by key, wherever they stand in a tip YAML); every
+# ``*_uncertainty`` must be >= 0
+POSITIVE_KEYS = {"E", "E_star", "spring_constant", "deflection_sensitivity", "pixel_size", "fit_height",
+                 "profile_height", "length", "temperature", "frequency_min", "frequency_max", "coating_thickness"}
+
+
+def _walk(node, path=()):
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _walk(v, path + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _walk(v, path + (i,))
+    else:
+        yield path, node
+
+
+def _check_physical(tip: dict, source) -> None:
+    """Values the schema's types allow but physics does not (one error per problem, file and key named)."""
+    problems = []
+    for path, v in _walk(tip):
+        if not path or isinstance(path[-1], int) or isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        key = str(path[-1])
+        if key in POSITIVE_KEYS and not (math.isfinite(v) and v > 0):
+            problems.append(f"{_key_path(path)}: must be positive, got {v:g} (SI)")
+        elif key.endswith("_uncertainty") and not (math.isfinite(v) and v >= 0):
+            problems.append(f"{_key_path(path)}: an uncertainty must be >= 0, got {v:g} (SI)")
+        elif key == "nu" and not (-1.0 < v <= 0.5):
+            problems.append(f"{_key_path(path)}: Poisson's ratio must lie in (-1, 0.5], got {v:g}")
+    tem = tip.get("tem", {})
+    if tem.get("profile_height", np.inf) < tem.get("fit_height", 0):
+        problems.append(f"tem.profile_height ({tem['profile_height'] * 1e9:.3g} nm) is below tem.fit_height "
+                        f"({tem['fit_height'] * 1e9:.3g} nm): the fit window needs a profile at least that high")
+    if problems:
+        raise ConfigError(f"{source}: invalid configuration:\n  - " + "\n  - ".join(problems))
 
 
 def discover_tips(cfg: dict) -> dict[str, Path]:

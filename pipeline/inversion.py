@@ -446,6 +446,23 @@ def interval_calibration_factor(ss, sysd, forces, size):
     return sysd["k_factor"] * fi
 
 
+def implausible_forces(F_p: dict, factor: float = 10.0) -> list:
+    """Words for intervals whose mean pull-off is more than ``factor`` times above or below the
+    median of the tip's other intervals: a wear test changes F_p by a few times at most (a blunter
+    tip), so such a step is a unit or calibration mistake (a deflection written in nm read as V)."""
+    notes = []
+    for nm, F in F_p.items():
+        others = [v for k, v in F_p.items() if k != nm and np.isfinite(v) and v > 0]
+        if not others or not (np.isfinite(F) and F > 0):
+            continue
+        ratio = F / float(np.median(others))
+        if ratio > factor or ratio < 1.0 / factor:
+            notes.append(f"interval {nm}: its mean pull-off {F * 1e9:.4g} nN is {ratio:.3g} x the median of the tip's other "
+                         f"intervals ({np.median(others) * 1e9:.4g} nN): check its deflection unit and calibration "
+                         "(force_curves.deflection_unit, the InvOLS source)")
+    return notes
+
+
 def correct_contact_compliance(forces: dict, n: float, Q: float, E_star: float):
     """Forces of an interval whose InvOLS came from its own contact slopes, corrected for the
     tip's finite contact stiffness (``pipeline.forces.contact_compliance``): F_p, its SEM and
@@ -544,6 +561,9 @@ def run_inversion(
     for note in cal_notes:
         log.warning(note)
 
+    fp_notes = implausible_forces({nm: forces[nm]["F_p_mean"] for nm in names})
+    for note in fp_notes:
+        log.warning(note)
     ss = _seed_sequence(seed, tip)
     children = ss.spawn(1 + 2 * len(names))  # systematic, per-interval draws, per-interval InvOLS
     sysd = draw_systematic(children[0], cal, float(E_star), float(u_E_star), S)
@@ -568,7 +588,7 @@ def run_inversion(
         n_s = dr["n"][:, None]
         q_s = np.exp(dr["ln_Q"])[:, None]
         e_s = sysd["E_star"][:, None]
-        notes = list(fo["warnings"]) + ([shape_note] if shape_note else [])
+        notes = list(fo["warnings"]) + ([shape_note] if shape_note else []) + [x for x in fp_notes if x.startswith(f"interval {nm}:")]
         if compliance > 1.001:
             notes.append(f"InvOLS from the contact slopes corrected for the tip's contact stiffness (Sneddon, DMT load): "
                          f"F_p divided by {compliance:.4f}, half the correction added to its uncertainty")

@@ -15,7 +15,7 @@ import numpy as np
 
 from pipeline.adhesion_range import CI_PCTS, load_range
 from pipeline.h5io import atomic_output
-from pipeline.inversion import CONVENTIONS, LJ_Z0_OVER_H
+from pipeline.inversion import CONVENTIONS, LJ_Z0_OVER_H, implausible_forces
 from pipeline.units import to_unit
 
 CI_LEVEL = 0.95
@@ -243,6 +243,7 @@ def summary_rows(rng: dict) -> list:
         if flagged:
             notes.append(f"InvOLS in use disagrees with the contact slope in {', '.join(flagged)} (invols_check in "
                          f"{rng['tip']}_report.csv): a remount without a new InvOLS, or a soft counter-surface")
+        notes += implausible_forces({nm: float(rng["intervals"][nm].get("F_p_mean", np.nan)) for nm in rng["order"]})
         bad = [f"{nm}: {iv['status']}" for nm, iv in L["intervals"].items() if iv["status"] not in ("ok", "reference")]
         if bad:
             notes.append("intervals " + "; ".join(bad))

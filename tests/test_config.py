@@ -82,6 +82,16 @@ def test_reduced_modulus_rigid_flat_limit():
         ({"materials": {"E_star": "80 GPa", "tip": {"E": "1 GPa", "nu": 0.3}}}, "give either E_star, or both tip and sample"),
         ({"tem.orientation": "sideways"}, "tem.orientation: 'sideways' is not one of"),
         ({"tem.coating": 15}, "tem.coating: 15 is not valid; expected 'auto' / 'none' or a length with its unit"),
+        # values the types allow but physics does not (issue 17): named with file and key, not a traceback later
+        ({"materials.tip.E": "-150 GPa"}, "materials.tip.E: must be positive"),
+        ({"materials.tip.E": "0 GPa"}, "materials.tip.E: must be positive"),
+        ({"materials.sample.nu": -1}, "materials.sample.nu: Poisson's ratio must lie in (-1, 0.5]"),
+        ({"materials": {"E_star": "80 GPa", "E_star_uncertainty": "90 GPa"}}, "E_star_uncertainty (90 GPa) is not smaller than E* (80 GPa)"),
+        ({"materials": {"E_star": "80 GPa", "E_star_uncertainty": "-1 GPa"}}, "materials.E_star_uncertainty: an uncertainty must be >= 0"),
+        ({"cantilever.spring_constant": "0 N/m"}, "cantilever.spring_constant: must be positive"),
+        ({"cantilever.deflection_sensitivity": "-50 nm/V"}, "cantilever.deflection_sensitivity: must be positive"),
+        ({"tem.pixel_size": "0 nm"}, "tem.pixel_size: must be positive"),
+        ({"tem.profile_height": "4 nm"}, "tem.profile_height (4 nm) is below tem.fit_height (6 nm)"),
     ],
 )
 def test_bad_tip_names_file_and_key(tmp_path, override, needle):
@@ -91,6 +101,18 @@ def test_bad_tip_names_file_and_key(tmp_path, override, needle):
     msg = str(exc.value)
     assert str(path) in msg
     assert needle in msg
+
+
+def test_tip_without_tem_section_gets_converted_defaults(tmp_path):
+    tip = load_tip_config(write_tip(tmp_path, tem=KeyError))
+    assert tip["tem"]["fit_height"] == pytest.approx(6e-9) and tip["tem"]["profile_height"] == pytest.approx(20e-9)
+
+
+def test_non_utf8_yaml_is_one_line(tmp_path):
+    path = write_tip(tmp_path)
+    path.write_bytes(path.read_bytes().replace(b"50 nm/V", b"0.05 \xb5m/V"))  # a Latin-1 micro sign
+    with pytest.raises(ConfigError, match=r"tipX.yaml: line \d+: byte 0xb5 is not UTF-8.*save the file as UTF-8"):
+        load_tip_config(path)
 
 
 def test_all_reference_is_rejected(tmp_path):
@@ -114,6 +136,9 @@ def test_workflow_errors(tmp_path):
         load_workflow_config({"tips_dir": "x", "results_dir": "r", "h_grid": {"min": "5 nm", "max": "1 nm"}})
     with pytest.raises(ConfigError, match="solver_mode: 'fast' is not one of"):
         load_workflow_config({"tips_dir": "x", "results_dir": "r", "solver_mode": "fast"})
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ConfigError, match="results_dir: .*afile' is an existing file, not a folder"):
+        load_workflow_config({"tips_dir": "x", "results_dir": str(tmp_path / "afile")})
 
 
 def test_discover_tips(tmp_path):

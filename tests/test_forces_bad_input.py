@@ -101,3 +101,24 @@ def test_custom_columns_and_units(tmp_path):
     with h5py.File(out) as f:
         assert f["interval/F_p_mean"][()] == pytest.approx(10e-9, rel=0.01)
         assert np.isnan(f["curves/delta_V"][0])
+
+
+def test_deflection_in_nm_read_as_volts_is_refused(tmp_path):
+    """A CSV whose deflection column is in nm while the YAML says V (F_p came out 60 x too large
+    before): values beyond any photodetector's range are refused naming the setting; and an
+    interval whose mean F_p is far off the others' is said to be so in words."""
+    import numpy as np
+
+    from pipeline.forces.reading import read_curves
+    from pipeline.inversion import implausible_forces
+    from pipeline.synth.force_curves import make_force_curve, write_curve_csv
+
+    c = make_force_curve(5e-9, 0.2, 50e-9, seed=2)
+    c.deflection_V = c.deflection_V * 50.0  # nm written where volts are expected
+    p = write_curve_csv(tmp_path / "nm.csv", c)
+    with pytest.raises(ForceCurveError, match=r"reaches .* V, beyond any photodetector's range.*force_curves.deflection_unit"):
+        read_curves(p)
+    (cu,) = read_curves(p, {"deflection_unit": "nm"})
+    assert cu.defl_units == "m" and np.abs(cu.defl_retract).max() < 1e-6
+    notes = implausible_forces({"a": 5e-9, "b": 6e-9, "c": 298.7e-9, "d": 7e-9})
+    assert len(notes) == 1 and notes[0].startswith("interval c:") and "deflection unit" in notes[0]

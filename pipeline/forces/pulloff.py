@@ -116,12 +116,13 @@ def _abscissa(z, dc, lo, hi):
     return (np.arange(z.size, dtype=float) if by_index else z), by_index
 
 
-def _clipped_run(z, d, dc, i_min, fit_points, min_run=3):
+def _clipped_run(z, d, dc, i_min, fit_points, min_run=5):
     """Why the adhesive dip is flat at the rail of the recorded range (a saturated detector or ADC:
     never a pull-off), or ''.  A run of >= ``min_run`` samples at exactly the lowest recorded
     value, around the deepest point, where the contact line before the run would have gone on down
-    (its value at the run's end below the run by > 4 x its noise and > 5 % of the depth): a
-    coarsely quantised genuine minimum has flat runs too, but its contact line ends at them."""
+    (its value at the run's end below the run by > 4 x its noise and > 10 % of the depth): a
+    coarsely quantised genuine minimum or a corner has a few equal samples at most, and its contact
+    line ends near them."""
     rail = float(d.min())
     at = np.abs(d - rail) <= 1e-12 * max(abs(rail), 1e-300)
     if not at[i_min]:
@@ -136,7 +137,7 @@ def _clipped_run(z, d, dc, i_min, fit_points, min_run=3):
     lo = max(0, a - fit_points)
     line = fit_line(np.arange(lo, a, dtype=float), dc[lo:a], clip=np.inf)
     below = float(dc[a] - line(float(b)))
-    if below > max(4.0 * line.rms, 0.05 * -float(dc[a])):
+    if below > max(4.0 * line.rms, 0.1 * -float(dc[a])):
         return (f"the adhesive dip is clipped: {b - a + 1} samples sit at the lowest recorded value ({rail:.6g}, the "
                 f"detector's or the ADC's limit) where the contact line still falls: its real depth is not recorded, "
                 f"so this is no pull-off (re-record with a larger deflection range or a lower gain)")
@@ -365,7 +366,7 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
         i_last = i_jit if i_jit != i_j else i_end
         if branch.size >= 1 or jump_fraction < 0.5:
             delta, u_fit, shape = _smooth_minimum(dc, x, *_band_window(dc, i_min, i_end, line.rms), line.rms)
-            i_j = i_end
+            i_j = i_min
         else:
             lo_w = max(0, i_last + 1 - int(fit_points))
             xw, _ = _abscissa(z, dc, lo_w, i_last)
@@ -374,6 +375,7 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
                 # attraction before it let go
                 delta, u_fit, shape = _smooth_minimum(dc, xw, lo_w, i_last, line.rms)
                 shape += " before the jump"
+                i_last = lo_w + int(np.argmin(dc[lo_w : i_last + 1]))
             else:
                 delta, u_fit, step, i_last = _contact_extrapolation(z, dc, i_last, int(fit_points), i_j,
                                                                     robust=i_last != i_end)

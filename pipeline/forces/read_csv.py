@@ -19,6 +19,7 @@ from pipeline.forces.curve import ForceCurve, check_segments, split_at_turnaroun
 from pipeline.forces.errors import ForceCurveError
 from pipeline.units import QuantityError, parse_quantity
 
+MAX_DETECTOR_VOLTS = 20.0  # photodetector sum/difference signals stay within +-10-12 V
 APPROACH_LABELS = {"approach", "extend", "app", "0"}
 RETRACT_LABELS = {"retract", "ret", "1"}
 
@@ -67,6 +68,10 @@ def read_csv_curve(path, reader: dict) -> ForceCurve:
     sign = -1.0 if reader["height_axis"] == "height" else 1.0
     z, d = sign * h_fac * num[:, 0], d_fac * num[:, 1]
     units = "V" if d_kind == "voltage" else "m"
+    if units == "V" and np.nanmax(np.abs(d), initial=0.0) > MAX_DETECTOR_VOLTS:
+        raise ForceCurveError(path, f"the deflection column reaches {np.nanmax(np.abs(d)):.4g} V, beyond any photodetector's "
+                                    f"range (+-{MAX_DETECTOR_VOLTS:g} V): is it in nm? set force_curves.deflection_unit "
+                                    "(e.g. 'nm') to the unit the file uses")
     seg_col = cols.get("segment")
     if seg_col and seg_col in df.columns:
         lab = df[seg_col].astype(str).str.strip().str.lower().str.replace(r"\.0$", "", regex=True).to_numpy()

@@ -212,7 +212,13 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
         iv["calibration"] = h5py.SoftLink("/calibration")
 
         plot_retracts(out_png, [_plot_item(r, cal.k, inv.value, st.outlier[i]) for i, r in enumerate(rows) if r["curve"] is not None],
-                      n_total=n, title=f"{tip} {interval}: F_p = {st.mean * 1e9:.3g} +- {np.nan_to_num(st.sem) * 1e9:.2g} nN (n={st.n_used})")
+                      n_total=n, title=_figure_title(tip, interval, st))
+
+
+def _figure_title(tip, interval, st) -> str:
+    if st.n_used < 2 or not np.isfinite(st.sem):
+        return f"{tip} {interval}: F_p = {st.mean * 1e9:.3g} nN from {st.n_used} curve (no scatter estimate)"
+    return f"{tip} {interval}: F_p = {st.mean * 1e9:.3g} +- {st.sem * 1e9:.2g} nN (standard error, n={st.n_used})"
 
 
 def _nan(row, attr):
