@@ -102,3 +102,33 @@ def test_bad_files(tmp_path, small_image):
     with pytest.raises(TemReadError, match="missing.tif.*not found"):
         read_tem_image(tmp_path / "missing.tif")
     assert issubclass(TemReadError, ValueError)
+
+
+def test_float_tiff_all_nan_or_inf_is_one_line(tmp_path):
+    p = tmp_path / "nan.tif"
+    tifffile.imwrite(p, np.full((64, 64), np.nan, np.float32), resolution=(4e7, 4e7), resolutionunit="CENTIMETER")
+    with pytest.raises(EmptyImageError, match="nan.tif: no finite pixel values"):
+        read_tem_image(p)
+    img = np.random.default_rng(1).normal(1000, 10, (64, 64)).astype(np.float32)
+    img[3, 4] = np.inf
+    tifffile.imwrite(p, img, resolution=(4e7, 4e7), resolutionunit="CENTIMETER")
+    im = read_tem_image(p)
+    assert np.all(np.isfinite(im.data)) and "1 NaN/inf pixels replaced" in im.note
+
+
+@pytest.mark.parametrize("cm_per_px, hint", [(0.25e-4, "1000x too large"), (0.1e-7 * 25.4, "inch")])
+def test_implausible_calibration_is_refused_at_reading(tmp_path, small_image, cm_per_px, hint):
+    """A calibration unit wrong by 1000x (0.25 um per pixel for 0.25 nm) or 25.4x is refused at
+    the reading step naming the number (before: a fit on 2 points or n = 1.05 with a flag); a
+    given tem.pixel_size replaces it, with a note."""
+    img = small_image
+    p = tmp_path / "bad.tif"
+    tifffile.imwrite(p, img, resolution=(1 / cm_per_px, 1 / cm_per_px), resolutionunit="CENTIMETER")
+    with pytest.raises(PixelSizeError, match="implausible for a TEM image of a tip apex") as exc:
+        read_tem_image(p)
+    if "1000x" in hint:
+        assert hint in str(exc.value)
+    im = read_tem_image(p, pixel_size="0.25 nm")
+    assert im.pixel_size == pytest.approx(0.25e-9) and im.source == "tip YAML" and "implausible" in im.note
+    with pytest.raises(PixelSizeError, match="tem.pixel_size of the tip YAML"):
+        read_tem_image(p, pixel_size="250 nm")

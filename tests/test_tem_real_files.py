@@ -27,6 +27,9 @@ MEMBERS = {
     "imagej_noscale": "hyperspy/tests/io/tiff_files/test_loading_image_saved_with_imageJ_no_scale.tif",
     "dm_tif": "hyperspy/tests/io/tiff_files/test_loading_image_saved_with_DM.tif",
     "dm4_tiny": "hyperspy/tests/io/dm4_2D_data/test-1.dm4",
+    "fei_zip": "hyperspy/tests/io/tiff_files/tiff_FEI_Helios.zip",
+    "zeiss_zip": "hyperspy/tests/io/tiff_files/tiff_Zeiss_SEM.zip",
+    "jeol_gz": "hyperspy/tests/io/tiff_files/JEOL-SightX-TEM-mag-dummy.tif.gz",
 }
 
 
@@ -50,7 +53,18 @@ def real_files():
         with zipfile.ZipFile(wheels[0]) as z:
             for m in MEMBERS.values():
                 z.extract(m, dest)
-    return {k: dest / m for k, m in MEMBERS.items()}
+    out = {k: dest / m for k, m in MEMBERS.items()}
+    tiffs = out["fei_zip"].parent
+    for key in ("fei_zip", "zeiss_zip"):  # archives inside the wheel: unpacked in the cache, read in place
+        with zipfile.ZipFile(out[key]) as z:
+            z.extractall(tiffs)
+    import gzip
+
+    jeol = tiffs / "JEOL-SightX-TEM-mag-dummy.tif"
+    if not jeol.is_file():
+        jeol.write_bytes(gzip.decompress(out["jeol_gz"].read_bytes()))
+    out.update(fei=tiffs / "FEI-Helios-Ebeam-8bits.tif", zeiss=tiffs / "test_tiff_Zeiss_SEM_512pix.tif", jeol=jeol)
+    return out
 
 
 def test_real_dm3_stem_image_nm(real_files):
@@ -62,17 +76,36 @@ def test_real_dm3_stem_image_nm(real_files):
 
 def test_real_dm3_tecnai_um_calibration_and_imagej_copy(real_files):
     """FEI Tecnai image in µm (DM3) and the same image saved by ImageJ (unit=micron)."""
-    dm = read_tem_image(real_files["um"])
-    ij = read_tem_image(real_files["imagej"])
+    dm = read_tem_image(real_files["um"], check_plausible=False)  # 169 nm pixels: no tip-apex image
+    ij = read_tem_image(real_files["imagej"], check_plausible=False)
     assert dm.pixel_size == pytest.approx(0.16867469e-6, rel=1e-6)
     assert ij.pixel_size == pytest.approx(dm.pixel_size, rel=1e-5)
     assert ij.source.startswith("tiff tags")
 
 
 def test_real_uncalibrated_files_need_yaml(real_files):
-    for key in ("imagej_noscale", "dm_tif"):
+    for key in ("imagej_noscale",):
         with pytest.raises(PixelSizeError, match=real_files[key].name):
             read_tem_image(real_files[key])
         assert read_tem_image(real_files[key], pixel_size="0.2 nm").source == "tip YAML"
     with pytest.raises(EmptyImageError, match="test-1.dm4"):
         read_tem_image(real_files["dm4_tiny"])  # 2x2 px DM4 written by Digital Micrograph
+
+
+def test_microscope_software_tiff_calibrations_are_read(real_files):
+    """Calibrated TIFFs written by Gatan DigitalMicrograph, FEI/Thermo (Helios), Zeiss and JEOL
+    (SightX) software keep their calibration (rosettasciio reads their metadata; hyperspy's test
+    files, values as hyperspy's own tests give them).  These are SEM / low-magnification images, so
+    the tip-image plausibility check refuses them at reading, with the reason and the number."""
+    from pipeline.tem.reading import _rsciio_tiff_calibration
+
+    for key, px in (("dm_tif", 0.16867469e-6), ("fei", 3.3724e-6), ("zeiss", 1.1649976e-8), ("jeol", 1.8207885e-9)):
+        cal, source = _rsciio_tiff_calibration(real_files[key])
+        assert cal == pytest.approx((px, px), rel=1e-5), key
+        assert source.startswith("tiff metadata (rosettasciio")
+    im = read_tem_image(real_files["fei"], check_plausible=False)
+    assert im.pixel_size == pytest.approx(3.3724e-6, rel=1e-5) and "rosettasciio" in im.source
+    with pytest.raises(PixelSizeError, match=r"this pixel size \(1\.165e\+04 nm\)|this pixel size \(11650 nm\)|implausible"):
+        read_tem_image(real_files["zeiss"])
+    with pytest.raises(PixelSizeError, match=r"168\.7 nm.*implausible.*1000x too large"):
+        read_tem_image(real_files["dm_tif"])

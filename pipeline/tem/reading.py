@@ -1,8 +1,12 @@
 """Read TEM images (TIFF, PNG/JPEG, Gatan DM3/DM4) with their pixel size in metres.
 
 Pixel-size sources, in order: the file's own calibration (TIFF ImageJ ``unit=``
-+ X/YResolution, TIFF ResolutionUnit inch/cm + X/YResolution, DM calibration),
-then the caller's value (tip YAML ``tem.pixel_size``).  TIFF resolutions that
++ X/YResolution, TIFF ResolutionUnit inch/cm + X/YResolution, the microscope software's
+metadata read by rosettasciio -- Gatan DigitalMicrograph, FEI/Thermo, Zeiss, JEOL, TVIPS --, DM3/DM4
+calibration), then the caller's value (tip YAML ``tem.pixel_size``).  A pixel size outside
+0.01-2 nm is implausible for a tip-apex image (a unit wrong by 1000x or 25.4x): refused with a
+hint, or replaced by ``tem.pixel_size`` where that is given.  NaN/inf pixels are replaced by the
+median (noted); an image without a finite pixel is refused.  TIFF resolutions that
 give pixels larger than 1 um are treated as screen/print DPI defaults, not a
 calibration.  Different x and y calibrations are corrected by resampling the
 coarser axis onto the finer pixel (up to a ratio of 2); anything else is
@@ -45,11 +49,12 @@ def unit_to_metres(unit: str, where: str = "") -> float:
     return parse_quantity(f"1 {u}", "length", where)
 
 
-def read_tem_image(path, pixel_size=None) -> TemImage:
+def read_tem_image(path, pixel_size=None, check_plausible=True) -> TemImage:
     """Read ``path`` and return a :class:`TemImage` (data float, pixel size m, source).
 
     ``pixel_size`` (m, or a string such as "0.25 nm") is used only when the file
-    has no calibration.  Raises TemReadError / PixelSizeError / EmptyImageError
+    has no calibration (or an implausible one).  ``check_plausible``: refuse pixel sizes outside
+    ``PLAUSIBLE_PIXEL`` (a tip-apex image; off for reading any micrograph).  Raises TemReadError / PixelSizeError / EmptyImageError
     (ValueError subclasses) naming the file.
     """
     path = Path(path)
@@ -70,12 +75,20 @@ def read_tem_image(path, pixel_size=None) -> TemImage:
     data = _to_grey(np.asarray(data), path)
     if data.size == 0 or data.ndim != 2 or min(data.shape) < 8:
         raise EmptyImageError(path, f"empty image (shape {data.shape})")
-    if not np.all(np.isfinite(data)):
-        data = np.where(np.isfinite(data), data, np.nanmedian(data))
+    finite = np.isfinite(data)
+    note = ""
+    if not finite.any():
+        raise EmptyImageError(path, "no finite pixel values (every pixel is NaN or inf): not an image")
+    if not finite.all():
+        note = f"{int((~finite).sum())} NaN/inf pixels replaced by the median of the others; "
+        data = np.where(finite, data, float(np.median(data[finite])))
     if float(data.max() - data.min()) <= 0:
         raise EmptyImageError(path, "empty image (all pixels have the same value)")
 
-    note = ""
+    if check_plausible and cal is not None and not _plausible(min(cal)) and pixel_size is not None:
+        note += (f"the file's calibration ({min(cal) * 1e9:.4g} nm per pixel) is implausible for a tip image: the tip "
+                 "YAML's tem.pixel_size is used instead; ")
+        cal = None
     if cal is None:
         if pixel_size is None:
             raise PixelSizeError(path, "no pixel size: the file carries no length calibration "
@@ -83,12 +96,38 @@ def read_tem_image(path, pixel_size=None) -> TemImage:
         px = parse_quantity(pixel_size, "length", str(path)) if isinstance(pixel_size, str) else float(pixel_size)
         if not (0 < px < _MAX_TEM_PIXEL):
             raise PixelSizeError(path, f"pixel size {px!r} m from the tip YAML is not a TEM pixel size")
-        return TemImage(data, px, "tip YAML", str(path))
+        if check_plausible and not _plausible(px):
+            raise PixelSizeError(path, _implausible(px, "tem.pixel_size of the tip YAML"))
+        return TemImage(data, px, "tip YAML", str(path), note.rstrip("; "))
     px_y, px_x = cal
+    if check_plausible and not _plausible(min(px_y, px_x)):
+        raise PixelSizeError(path, _implausible(min(px_y, px_x), f"the file's calibration ({source})") +
+                             "; give tem.pixel_size to override it")
     if pixel_size is not None:
-        note = "tip YAML pixel_size ignored: the file carries a calibration"
+        note += "tip YAML pixel_size ignored: the file carries a calibration"
     data, px, extra = _square_pixels(data, px_y, px_x, path)
-    return TemImage(data, px, source + extra, str(path), note)
+    return TemImage(data, px, source + extra, str(path), note.rstrip("; "))
+
+
+PLAUSIBLE_PIXEL = (0.01e-9, 2e-9)  # m: a TEM image that resolves a worn tip's apex profile to ~0.1 nm
+
+
+def _plausible(px: float) -> bool:
+    return PLAUSIBLE_PIXEL[0] <= px <= PLAUSIBLE_PIXEL[1]
+
+
+def _implausible(px: float, what: str) -> str:
+    hint = ""
+    for factor, cause in ((1000.0, "nm written as um, or pm as nm"), (25.4, "a millimetre read as an inch"),
+                          (10.0, "Angstrom read as nm")):
+        for f in (factor, 1.0 / factor):
+            if _plausible(px / f):
+                hint = f" ({f:g}x too {'large' if f > 1 else 'small'}? {cause})"
+                break
+        if hint:
+            break
+    return (f"this pixel size ({px * 1e9:.4g} nm) from {what} is implausible for a TEM image of a tip apex "
+            f"(expected {PLAUSIBLE_PIXEL[0] * 1e9:g}-{PLAUSIBLE_PIXEL[1] * 1e9:g} nm){hint}")
 
 
 def _square_pixels(data, px_y, px_x, path):
@@ -131,6 +170,49 @@ def _read_plain(path):
 
 
 def _read_tiff(path):
+    """TIFF data and calibration: the microscope software's own metadata through rosettasciio
+    (Gatan DigitalMicrograph, FEI/Thermo, Zeiss, JEOL, TVIPS, ImageJ), else the resolution tags."""
+    data, cal, source = _read_tiff_tags(path)
+    if cal is None:
+        rs = _rsciio_tiff_calibration(path)
+        if rs is not None:
+            cal, source = rs
+    return data, cal, source
+
+
+def _rsciio_tiff_calibration(path):
+    """((px_y, px_x) m, source) from rosettasciio's TIFF reader, or None where it has no length axes."""
+    import logging
+
+    try:
+        from rsciio.tiff import file_reader
+    except ImportError:
+        return None
+    log = logging.getLogger("rsciio")
+    old = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        items = file_reader(str(path), lazy=True)
+    except Exception:  # noqa: BLE001 - the tag reader has already read the data; no calibration then
+        return None
+    finally:
+        log.setLevel(old)
+    if not items:
+        return None
+    axes = [a for a in items[0]["axes"] if a.get("navigate") is not True]
+    if len(axes) < 2:
+        return None
+    try:
+        cal = tuple(float(a["scale"]) * unit_to_metres(str(a.get("units") or ""), str(path)) for a in axes[-2:])
+    except (QuantityError, TypeError, ValueError):
+        return None
+    if min(cal) <= 0:
+        return None
+    software = str(items[0].get("original_metadata", {}).get("Software", "") or "").strip()
+    return cal, "tiff metadata (rosettasciio" + (f", {software[:40]}" if software else "") + ")"
+
+
+def _read_tiff_tags(path):
     import tifffile
 
     try:
