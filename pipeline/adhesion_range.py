@@ -546,6 +546,19 @@ def run_adhesion_range(inversion_h5, out_h5, report_csv=None, fig_dir=None, *, t
     tip = tip or inv.get("tip") or ""
     h = inv["h"]
     results = {law: analyse_law(inv, law, inconsistency) for law in inv["laws"]}
+    for law, res in results.items():
+        g = res.get("global", {})
+        for nm, info in res["intervals"].items():
+            log.info("%s %s %s: %s%s%s", tip, law, nm, info["status"],
+                     f", crosses the reference at h = {info['h'] * 1e9:.3g} nm" if np.isfinite(info.get("h", np.nan)) else "",
+                     f" ({info['note']})" if info.get("note") else "")
+        if g.get("status") == "ok":
+            hp, wp = g["h_pcts"], g["W_pcts"]
+            log.info("%s %s: h = %.3g nm [%.3g, %.3g], W_A = %.4g mJ/m^2 [%.4g, %.4g] (95 %% Monte Carlo percentiles; "
+                     "chi2 %.3g for %d dof; %s)", tip, law, g["h"] * 1e9, hp[0] * 1e9, hp[-1] * 1e9, g["W_A"] * 1e3,
+                     wp[0] * 1e3, wp[-1] * 1e3, g["chi2_min"], g["dof"], g.get("note", "").strip() or "consistent")
+        else:
+            log.info("%s %s: %s %s", tip, law, g.get("status", res.get("status", "")), g.get("note", ""))
     write_range_h5(out_h5, inv, results, tip=tip, source=str(inversion_h5))
     if report_csv is not None:
         from pipeline.reports import write_tip_report

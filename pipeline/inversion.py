@@ -600,6 +600,8 @@ def run_inversion(
             notes.append(f"power-law fit flagged {', '.join(bad_fit)}: interval not used (check its profile figure)")
         if np.any(dr["n_clipped"]):
             notes.append(f"{np.mean(dr['n_clipped']):.0%} of MC draws had n < 2 and were clipped to 2 keeping R")
+        log.info("%s %s: n = %.3f +- %.3f (%s), F_p = %.4g nN%s; %s", tip, nm, fit["n"], fit["u_n"], n_flag, fo["F_p_mean"] * 1e9,
+                 f" (contact compliance {compliance:.4f} applied)" if compliance > 1 else "", "; ".join(notes) or "no notes")
         res = {"n_used": n_c, "ln_Q_used": lnq_c, "n_flag": n_flag, "draws": dr, "laws": {}, "notes": notes,
                "shape_model": shape_model}
         for law in laws:

@@ -131,6 +131,7 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
     st = interval_stats(F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"], u=u_F_stat)
     used = accepted & ~st.outlier
     u_k_rel, u_inv_rel, u_cal_rel, factor, u_factor, corr = _calibration_parts(cal, inv)
+    _log_decisions(label, rows, cal, inv, st, used, col)
 
     with atomic_h5(out_h5, stage="forces", tip=tip, interval=interval, outlier_rule=OUTLIER_RULES[reader["outlier_rule"]], mean_rule=MEAN_RULE,
                    reader_config={k: v for k, v in reader.items()}, cantilever_config={k: v for k, v in cant.items()},
@@ -213,6 +214,25 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
 
         plot_retracts(out_png, [_plot_item(r, cal.k, inv.value, st.outlier[i]) for i, r in enumerate(rows) if r["curve"] is not None],
                       n_total=n, title=_figure_title(tip, interval, st))
+
+
+def _log_decisions(label, rows, cal, inv, st, used, col) -> None:
+    """The stage's decisions in plain lines (the log is the lab notebook)."""
+    log.info("%s: k = %.4g N/m +- %.2g %% (%s); InvOLS = %.4g nm/V +- %.2g %% (%s)", label, cal.k, 100 * cal.u_k_rel,
+             cal.k_source, inv.value * 1e9, 100 * inv.u / inv.value if inv.value else float("nan"), inv.source)
+    if inv.contact is not None and inv.contact.n:
+        log.info("%s: contact slopes of %d curve(s): InvOLS %.4g +- %.2g nm/V", label, inv.contact.n, inv.contact.mean * 1e9,
+                 inv.contact.u * 1e9)
+    for i, r in enumerate(rows):
+        name = Path(r["file"]).name
+        if r["reason"]:
+            log.info("%s: curve %s rejected: %s", label, name, r["reason"])
+        elif "po" in r:
+            po = r["po"]["_po"]
+            log.info("%s: curve %s: Delta = %.4g nm +- %.2g (%s)%s, weight %.3f", label, name, col["delta_m"][i] * 1e9,
+                     col["u_delta_m"][i] * 1e9, po.shape, "; outlier, not averaged" if st.outlier[i] else "", st.weight[i])
+    log.info("%s: F_p = %.4g nN, standard error %.2g nN, SD %.2g nN over %d curve(s) (%s)", label, st.mean * 1e9,
+             np.nan_to_num(st.sem) * 1e9, np.nan_to_num(st.std) * 1e9, st.n_used, MEAN_RULE.split(",")[0])
 
 
 def _figure_title(tip, interval, st) -> str:
