@@ -24,7 +24,8 @@ TIP_SCHEMA = SCHEMA_DIR / "tip.schema.yaml"
 WORKFLOW_SCHEMA = SCHEMA_DIR / "config.schema.yaml"
 
 # Files accepted as force curves when an interval's `curves` names a folder.
-CURVE_SUFFIXES = (".csv", ".tsv", ".txt", ".jpk-force", ".jpk-force-map", ".jpk-qi-data", ".ibw", ".h5")
+CURVE_SUFFIXES = (".csv", ".tsv", ".txt", ".dat", ".tab", ".jpk-force", ".jpk-force-map", ".jpk-qi-data", ".jpk-qi-series",
+                  ".ibw", ".h5", ".zip")
 
 
 class ConfigError(ValueError):

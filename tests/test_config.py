@@ -178,3 +178,13 @@ def test_parse_quantity_rejects():
         parse_quantity("5 nm", "pressure")
     with pytest.raises(QuantityError, match="unknown unit"):
         parse_quantity("5 furlongz", "length")
+
+
+def test_dat_curves_in_a_folder_are_listed(tmp_path):
+    """Curves saved as .dat (read as CSV/white space) are found in an interval's folder."""
+    path = write_tip(tmp_path)
+    d = tmp_path / "scans" / "curves" / "i1"
+    (d / "c1.csv").unlink()
+    (d / "c2.dat").write_text("x")
+    tip = load_tip_config(path)
+    assert [p.name for p in tip["intervals"][1]["curve_paths"]] == ["c2.dat"]
