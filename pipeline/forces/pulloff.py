@@ -62,10 +62,26 @@ class PullOff:
     shape: str = "sharp jump"  # how Delta was read: sharp jump | corner | rounded minimum | raw minimum
 
 
-def _jump_index(dc: np.ndarray, path) -> int:
-    """Last contact point: before the largest one-sample rise between the minimum and
-    the return above half of it."""
-    i_min = int(np.argmin(dc))
+def _first_release(dc: np.ndarray, noise: float) -> int:
+    """Index after which the lever has let go (end of the region to search for the pull-off):
+    the first sample, in time, that rose by more than half the depth reached so far (and that
+    depth beyond 8 x the noise), plus a few samples for a filter's transition; the whole record
+    where there is none (a smooth detachment).  After a jump a lever of high Q rings, and
+    without an anti-alias filter the samples of its ringing can dip below the pull-off: they
+    are after its release and no pull-off."""
+    run_min = np.minimum.accumulate(dc)
+    half = 0.5 * run_min[:-2]
+    # a rise above half the depth reached so far that stays there for two samples (a piezo's
+    # jitter excursion comes back at once)
+    big = np.flatnonzero((dc[1:-1] > half) & (dc[2:] > half) & (run_min[:-2] < -8.0 * noise))
+    return dc.size if big.size == 0 else min(dc.size, int(big[0]) + 4)
+
+
+def _jump_index(dc: np.ndarray, path, noise: float = 0.0) -> int:
+    """Last contact point: before the largest one-sample rise between the minimum and the
+    return above half of it, the minimum searched up to the first release (``_first_release``)."""
+    end = _first_release(dc, noise) if noise > 0 else dc.size
+    i_min = int(np.argmin(dc[:end]))
     if dc[i_min] >= 0:
         raise ForceCurveError(path, "no pull-off event: the retract curve never goes below its baseline")
     back = np.flatnonzero(dc[i_min:] >= 0.5 * dc[i_min])
@@ -91,16 +107,20 @@ def _line_at(x, y, x_eval, line):
 
 def _last_contact(dc, i_j, fit_points, rms):
     """Move the jump-off past samples that look free but are followed, within ``fit_points``
-    samples, by samples that can only be in contact (deeper than half the adhesive dip and than
-    4 x the baseline noise): a jittering piezo moves the lever back and forth along its contact
-    line, so its deflection can rise and fall again before the lever lets go.  Such a sample
-    must lie below the first one after the rise (by 4 x noise): a jump seen through an anti-alias
-    filter rises monotonically, its first samples still deep, and is no jitter."""
+    samples, by samples that can only be in contact (back near the contact line: deeper than 70 %
+    of the adhesive dip and than 4 x the baseline noise): a jittering piezo moves the lever back and
+    forth along its contact line, so its deflection can rise and fall again before the lever lets
+    go; a lever of high Q rings after it let go, and its aliased swings dip to about half the depth.  Such a sample
+    must follow the contact samples without a break, or come after a free-looking one (above half
+    the dip): a jump seen through an anti-alias filter rises monotonically and is no jitter."""
     for _ in range(100):
-        thr = -max(0.5 * -dc[i_j], 4.0 * rms)
+        thr = -max(0.7 * -dc[i_j], 4.0 * rms)
         hi = min(dc.size - 1, i_j + 1 + fit_points)
         seg = dc[i_j + 1 : hi]
-        later = np.flatnonzero((seg < thr) & (seg < dc[i_j + 1] - 4.0 * rms))
+        # back on the contact line: right after (the contact goes on) or after a free-looking excursion
+        prior = np.maximum.accumulate(np.concatenate([[-np.inf], seg[:-1]]))
+        run = int(np.argmax(seg >= thr)) if np.any(seg >= thr) else seg.size  # contiguous contact samples
+        later = np.flatnonzero((seg < thr) & ((np.arange(seg.size) < run) | (prior > 0.5 * dc[i_j])))
         if later.size == 0:
             return i_j
         i_j = i_j + 1 + int(later[-1])
@@ -327,14 +347,14 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
     idx = np.arange(z.size)
     zmin, zmax = z.min(), z.max()
     line = _baseline(z, d, z <= zmin + 0.3 * (zmax - zmin), min_baseline_points, path, "(farthest 30 %)")
-    i_j = _jump_index(d - line(z), path)
+    i_j = _jump_index(d - line(z), path, line.rms)
     if i_j + 1 >= z.size:
         raise ForceCurveError(path, "no pull-off event: the minimum is at the end of the retract")
     zj = z[i_j + 1]
     free = (idx > i_j) & (z <= zj - baseline_gap * (zj - zmin))
     line = _baseline(z, d, free, min_baseline_points, path, "after the jump-off")
     dc = d - line(z)
-    i_j = _jump_index(dc, path)
+    i_j = _jump_index(dc, path, line.rms)
     i_min = int(np.argmin(dc[: i_j + 1]))
     delta_min = float(-dc[i_min])
     clipped = _clipped_run(z, d, dc, i_min, int(fit_points))

@@ -62,7 +62,8 @@ def draw_case(seed: int, kind: str = "rigid") -> Case:
         W_A=rng.uniform(0.3, 1.0) if elastic else rng.uniform(0.04, 0.1),
         h=rng.uniform(0.4e-9, 0.8e-9) if elastic else rng.uniform(2.5e-9, 6e-9),
         E_star=rng.uniform(30e9, 60e9) if elastic else rng.uniform(60e9, 150e9),
-        k=rng.uniform(0.5, 3.0), u_k_rel=0.05, invols=invols0 * (1.0 + drift * rng.standard_normal(m)),
+        # a ten times stiffer lever for the large elastic pull-offs (its deflection within the detector's +-10 V)
+        k=rng.uniform(0.5, 3.0) * (10.0 if elastic else 1.0), u_k_rel=0.05, invols=invols0 * (1.0 + drift * rng.standard_normal(m)),
         scatter=rng.uniform(0.02, 0.05), n_curves=8, sigma_n=rng.uniform(0.03, 0.08), sigma_ln_rh=rng.uniform(0.001, 0.003), bias=np.ones(m))
     if kind == "wrong_reference":
         case.bias[0] = 1.0 + rng.choice([-1.0, 1.0]) * 0.10
