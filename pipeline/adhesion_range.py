@@ -129,37 +129,63 @@ def censored_percentiles(values, side, pcts, lo_edge, hi_edge):
     return np.array(out)
 
 
+def sample_covariances(Y):
+    """Per-h covariance (H, I, I) of Y (S, H, I) over the samples with all I finite at that h
+    (vectorised; NaN where fewer than max(MIN_SAMPLES_FOR_COV, I + 2) samples are)."""
+    S, H, I = Y.shape
+    ok = np.all(np.isfinite(Y), axis=2)  # (S, H)
+    n = ok.sum(axis=0)
+    Yz = np.where(ok[..., None], Y, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = Yz.sum(axis=0) / n[:, None]
+        D = np.where(ok[..., None], Yz - mean[None], 0.0)
+        Dh = np.moveaxis(D, 0, 1)  # (H, S, I): one batched matrix product per h
+        C = np.matmul(np.swapaxes(Dh, 1, 2), Dh) / (n - 1)[:, None, None]
+    C[n < max(MIN_SAMPLES_FOR_COV, I + 2)] = np.nan
+    return C
+
+
+def precision(C, ridge=1e-10, tau2=0.0):
+    """Inverse of C (H, I, I) with a small ridge and ``tau2`` added to every interval's variance
+    (a between-interval random effect); NaN where C is."""
+    H, I, _ = C.shape
+    P = np.full(C.shape, np.nan)
+    good = np.all(np.isfinite(C), axis=(1, 2))
+    if not good.any():
+        return P
+    Cg = C[good]
+    tr = np.trace(Cg, axis1=1, axis2=2)
+    Cg = Cg + np.eye(I)[None] * (ridge + 1e-9 * tr / I + tau2)[:, None, None]
+    try:
+        P[good] = np.linalg.inv(Cg)
+    except np.linalg.LinAlgError:
+        P[good] = np.linalg.pinv(Cg)
+    return P
+
+
 def _cov_inverse(Y, ridge=1e-10, tau2=0.0):
     """Per-h inverse covariance of Y (S, H, I) over samples with all I finite, with ``tau2``
     added to every interval's variance (a between-interval random effect)."""
-    S, H, I = Y.shape
-    P = np.full((H, I, I), np.nan)
-    for j in range(H):
-        rows = np.all(np.isfinite(Y[:, j, :]), axis=1)
-        if rows.sum() < max(MIN_SAMPLES_FOR_COV, I + 2):
-            continue
-        if I == 1:
-            v = np.var(Y[rows, j, 0], ddof=1) + tau2
-            P[j] = 1.0 / max(v, 1e-300) if v > 0 else np.nan
-            continue
-        C = np.atleast_2d(np.cov(Y[rows, j, :], rowvar=False))
-        C = C + np.eye(I) * (ridge + 1e-9 * np.trace(C) / I + tau2)
-        try:
-            P[j] = np.linalg.inv(C)
-        except np.linalg.LinAlgError:
-            P[j] = np.linalg.pinv(C)
-    return P
+    return precision(sample_covariances(Y), ridge, tau2)
 
 
 def gls_chi2(Y, P):
     """Common-mean GLS at every h: Y (..., H, I), P (H, I, I) -> (mean, chi2) (..., H)."""
-    Yz = np.where(np.isfinite(Y), Y, 0.0)
-    a = np.einsum("hij,...hj->...hi", np.nan_to_num(P), Yz)
+    fin = np.isfinite(Y)
+    Yz = np.where(fin, Y, 0.0)
+    # a[..., h, i] = sum_j P[h, i, j] Y[..., h, j], as one batched matrix product per h
+    Pz = np.nan_to_num(P)
+    if Yz.ndim == 2:
+        a = np.einsum("hij,hj->hi", Pz, Yz)
+    else:
+        lead = Yz.shape[:-2]
+        Yh = np.moveaxis(Yz.reshape(-1, *Yz.shape[-2:]), 1, 0)  # (H, N, I)
+        a = np.moveaxis(np.matmul(Yh, np.swapaxes(Pz, 1, 2)), 0, 1).reshape(*lead, *Yz.shape[-2:])
     one_p_one = np.nansum(P, axis=(1, 2))
     with np.errstate(divide="ignore", invalid="ignore"):
         mean = a.sum(axis=-1) / one_p_one
-        chi2 = np.einsum("...hi,...hi->...h", Yz, a) - mean**2 * one_p_one
-    bad = ~np.all(np.isfinite(Y), axis=-1) | ~np.isfinite(one_p_one) | (one_p_one <= 0)
+        chi2 = (Yz * a).sum(axis=-1) - mean**2 * one_p_one
+    bad = ~np.all(fin, axis=-1) | ~np.isfinite(one_p_one) | (one_p_one <= 0)
     mean = np.where(bad, np.nan, mean)
     chi2 = np.where(bad, np.inf, np.maximum(chi2, 0.0))
     return mean, chi2
@@ -383,18 +409,19 @@ def _min_chi2(x, Yc, P):
     return float(chis[0]), float(xs[0]), float(ms[0]), int(edge[0])
 
 
-def between_interval_variance(x, Yc, Ys, dof, iters=60):
-    """Paule-Mandel tau^2 (in (ln W_A)^2): the variance that, added to every interval's, brings the
-    global fit's chi^2_min down to its degrees of freedom (0 where it is already at or below)."""
-    chi0 = _min_chi2(x, Yc, _cov_inverse(Ys))[0]
+def between_interval_variance(x, Yc, C, dof, iters=60):
+    """Paule-Mandel tau^2 (in (ln W_A)^2): the variance that, added to every interval's (per-h
+    covariance ``C`` of the Monte Carlo), brings the global fit's chi^2_min down to its degrees of
+    freedom (0 where it is already at or below)."""
+    chi0 = _min_chi2(x, Yc, precision(C))[0]
     if dof <= 0 or not np.isfinite(chi0) or chi0 <= dof:
         return 0.0
     lo, hi = -14.0, 0.0  # ln tau^2: tau from 0.1 % to 100 % of W_A
-    if _min_chi2(x, Yc, _cov_inverse(Ys, tau2=np.exp(hi)))[0] > dof:
+    if _min_chi2(x, Yc, precision(C, tau2=np.exp(hi)))[0] > dof:
         return float(np.exp(hi))
     for _ in range(iters):
         mid = 0.5 * (lo + hi)
-        if _min_chi2(x, Yc, _cov_inverse(Ys, tau2=np.exp(mid)))[0] > dof:
+        if _min_chi2(x, Yc, precision(C, tau2=np.exp(mid)))[0] > dof:
             lo = mid
         else:
             hi = mid
@@ -423,11 +450,12 @@ def _random_effects_if_inconsistent(g, x, Yc, Ys):
         return
     g["p_value"] = float(chdtrc(g["dof"], g["chi2_min"]))
     g["birge_ratio"] = birge_ratio(g["chi2_min"], g["dof"])
-    tau2 = between_interval_variance(x, Yc, Ys, g["dof"])
+    C = sample_covariances(Ys)
+    tau2 = between_interval_variance(x, Yc, C, g["dof"])
     g["tau"] = float(np.sqrt(tau2))
     if tau2 <= 0.0:
         return
-    P = _cov_inverse(Ys, tau2=tau2)
+    P = precision(C, tau2=tau2)
     chi, xs, ms, edge = _min_chi2(x, Yc, P)
     S, _, I = Ys.shape
     # the random offsets of the Monte Carlo: seeded by the data's size (deterministic per file)

@@ -287,3 +287,21 @@ def test_birge_ratio():
 
     assert birge_ratio(0.5, 3) == 1.0 and birge_ratio(12.0, 3) == 2.0 and birge_ratio(-1e-3, 2) == 1.0
     assert np.isnan(birge_ratio(4.0, 0))
+
+
+def test_vectorised_covariances_equal_numpy_cov_per_h():
+    """The per-h covariance over the samples finite at that h (one einsum) equals np.cov of those
+    rows h by h, NaN patterns included; too few finite samples give NaN."""
+    from pipeline.adhesion_range import MIN_SAMPLES_FOR_COV, precision, sample_covariances
+
+    rng = np.random.default_rng(5)
+    Y = rng.normal(size=(300, 7, 3)) @ np.array([[1.0, 0.3, 0.1], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    Y[rng.random((300, 7, 3)) < 0.05] = np.nan
+    Y[:, 6, :][: 300 - MIN_SAMPLES_FOR_COV + 1] = np.nan  # h 6: too few complete samples
+    C = sample_covariances(Y)
+    for j in range(6):
+        rows = np.all(np.isfinite(Y[:, j, :]), axis=1)
+        np.testing.assert_allclose(C[j], np.cov(Y[rows, j, :], rowvar=False), rtol=1e-12)
+    assert np.all(np.isnan(C[6]))
+    P = precision(C, tau2=0.01)
+    np.testing.assert_allclose(P[2], np.linalg.inv(C[2] + np.eye(3) * (1e-10 + 1e-9 * np.trace(C[2]) / 3 + 0.01)), rtol=1e-10)
