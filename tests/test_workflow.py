@@ -62,6 +62,15 @@ def test_run_writes_summary_with_wa_and_h(finished_run):
         assert (finished_run / "results" / t / "W_A_vs_h.png").is_file()
 
 
+def test_every_output_is_readable_as_the_umask_allows(finished_run):
+    umask = os.umask(0)
+    os.umask(umask)
+    files = [p for p in (finished_run / "results").rglob("*") if p.is_file()]
+    assert len(files) > 40
+    wrong = {str(p): oct(p.stat().st_mode & 0o777) for p in files if p.stat().st_mode & 0o777 != 0o666 & ~umask}
+    assert not wrong, f"expected {oct(0o666 & ~umask)}"
+
+
 def test_second_dry_run_has_nothing_to_do(finished_run):
     proc = snakemake(finished_run, "-n")
     assert proc.returncode == 0, proc.stderr
