@@ -10,6 +10,10 @@ min_version("9.0")
 configfile: "config/config.yaml"
 
 
+# `snakemake --report`: the workflow description; each result's caption says what to look for.
+report: "workflow_rules/report/workflow.rst"
+
+
 include: "workflow_rules/common.smk"
 include: "workflow_rules/profiles.smk"
 include: "workflow_rules/fits.smk"

@@ -73,6 +73,30 @@ def test_every_output_is_readable_as_the_umask_allows(finished_run):
     assert not wrong, f"expected {oct(0o666 & ~umask)}"
 
 
+def test_every_report_item_has_a_caption_and_the_workflow_a_description():
+    import re
+
+    calls = [(smk.name, m.group(0)) for smk in (ROOT / "workflow_rules").glob("*.smk")
+             for m in re.finditer(r"report\((?:[^()]|\([^()]*\))*\)", smk.read_text())]
+    assert len(calls) == 8
+    for smk, call in calls:
+        caption = re.search(r'caption="([^"]+)"', call)
+        assert caption, f"{smk}: {call} has no caption"
+        text = (ROOT / "workflow_rules" / caption.group(1)).read_text()
+        assert len(text.split()) > 40, caption.group(1)
+    described = re.search(r'^report: "([^"]+)"', (ROOT / "Snakefile").read_text(), re.MULTILINE)
+    assert described and "Where to start" in (ROOT / described.group(1)).read_text()
+
+
+def test_report_shows_the_captions(finished_run, tmp_path):
+    proc = snakemake(finished_run, "--report", str(tmp_path / "report.html"))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    html = (tmp_path / "report.html").read_text()
+    assert "Where to start" in html  # the workflow description
+    assert html.count("What to look for") == 2 * (3 + 3 + 1 + 1 + 1 + 1) + 1  # per tip: profiles, forces x3; fits, W_A(h), map, table; summary
+    assert "Tip <strong>tipB_Si</strong>, interval <strong>scan030</strong>" in html  # wildcards filled in
+
+
 def test_second_dry_run_has_nothing_to_do(finished_run):
     proc = snakemake(finished_run, "-n")
     assert proc.returncode == 0, proc.stderr
