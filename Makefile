@@ -65,13 +65,16 @@ test-latest:                    ## the default suite against the newest releases
 # pyproject.toml, resolved for every platform and Python >= 3.11 with as few version splits as
 # possible (so the versions CI tests on Linux/CPython 3.11 are the ones everyone installs), every
 # file's sha256.  The cluster lock keeps the main lock's versions and adds the SLURM plugin.
+# `make lock LOCK_UPGRADE=` keeps the current pins where pyproject.toml allows them (to add a
+# dependency without moving the others).
 UV_VERSION := 0.13.8
+LOCK_UPGRADE ?= --upgrade
 UV_COMPILE = .venv-lock/bin/uv pip compile pyproject.toml .venv-lock/build-system-requires.txt --quiet --generate-hashes \
 	--universal --fork-strategy fewest --python-version 3.11 --custom-compile-command "make lock"
 lock:                           ## refresh requirements.lock and requirements-cluster.lock (then make test)
 	test -x .venv-lock/bin/uv || { $(PYTHON) -m venv .venv-lock && .venv-lock/bin/python -m pip install --quiet "uv==$(UV_VERSION)"; }
 	$(PYTHON) -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['build-system']['requires'], sep='\n')" > .venv-lock/build-system-requires.txt
-	$(UV_COMPILE) --upgrade --extra test -o $(LOCK)
+	$(UV_COMPILE) $(LOCK_UPGRADE) --extra test -o $(LOCK)
 	cp $(LOCK) $(LOCK_CLUSTER)
 	$(UV_COMPILE) --extra test --extra cluster -o $(LOCK_CLUSTER)
 

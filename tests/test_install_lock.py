@@ -2,6 +2,7 @@
 pinned to one version that satisfies it, every pin with its sha256 hashes, the build backend
 included, and the cluster lock the same versions plus the SLURM plugin."""
 import importlib.util
+import re
 import tomllib
 from pathlib import Path
 
@@ -88,3 +89,28 @@ def test_drift_names_what_differs_from_the_lock(tmp_path):
     lines = lock_drift.drift(lock)
     assert any(ln.startswith("pytest 0.0.1 -> ") for ln in lines)
     assert "nosuchpackage-xyz 1.0 pinned, not installed" in lines
+
+
+# Licences GPL-3.0-or-later cannot take in (README "Licence"); matched in each locked package's
+# licence metadata (expression, licence text's first line, classifiers).
+INCOMPATIBLE = re.compile(r"GPL-2\.0-only|GPLv2 only|GPL-2\.0\b(?!.*or.later)|SSPL|BUSL|Business Source|Proprietary|"
+                          r"Commercial|Non.?Commercial|CC-BY-NC|Elastic License", re.IGNORECASE)
+
+
+def test_licence_is_gpl3_or_later_and_no_locked_dependency_forbids_it():
+    from importlib import metadata
+
+    assert PYPROJECT["project"]["license"] == "GPL-3.0-or-later"
+    text = (ROOT / "LICENSE").read_text()
+    assert text.split()[:6] == ["GNU", "GENERAL", "PUBLIC", "LICENSE", "Version", "3,"] and len(text) > 30000
+    checked = 0
+    for name in pins_for_linux_311(MAIN):
+        try:
+            meta = metadata.metadata(name)
+        except metadata.PackageNotFoundError:
+            continue
+        words = [meta.get("License-Expression") or "", (meta.get("License") or "").split("\n")[0]]
+        words += [c for c in meta.get_all("Classifier") or [] if c.startswith("License")]
+        assert not INCOMPATIBLE.search(" | ".join(words)), f"{name}: {words}"
+        checked += 1
+    assert checked > 80
