@@ -21,10 +21,11 @@ $(BIN)/.installed: pyproject.toml $(LOCK)
 
 # --keep-going: a tip that fails costs the others nothing; the summary then lists the tips that
 # finished and says for the failed one which job failed and why (Snakefile `onerror`).
-# `unlock-stale` first removes the lock of a run that was killed (never of one still running).
+# After a run that was killed: `unlock-stale` first removes its lock (never that of a run still
+# running), and --rerun-incomplete reruns the jobs it was running.
 run: $(BIN)/.installed          ## run the whole pipeline on data_samples/ -> results/summary.csv
 	$(BIN)/python -m pipeline unlock-stale
-	$(BIN)/snakemake --cores $(CORES) --keep-going; status=$$?; \
+	$(BIN)/snakemake --cores $(CORES) --keep-going --rerun-incomplete; status=$$?; \
 	  if [ -f results/summary.csv ]; then echo; echo "== results/summary.csv =="; cat results/summary.csv; fi; \
 	  exit $$status
 

@@ -103,15 +103,14 @@ class FailedJob:
 def failure_reason(log_path, *, since: float | None = None) -> list[str] | None:
     """The lines of a failed job's log that say why it failed (at most ``MAX_REASON_LINES``):
     from the CLI's last ``error (...)`` line to the end, else the last line of a traceback or of
-    the log.  ``None`` if the log is missing, older than ``since`` (a job that did not start in
-    this run) or empty."""
+    the log; ``[]`` for an empty log.  ``None`` if the log is missing or older than ``since``
+    (written before this run: the job did not start in it; 5 s allow for the clocks of a
+    cluster's file system)."""
     try:
-        if since is not None and os.path.getmtime(log_path) < since - 1.0:
+        if since is not None and os.path.getmtime(log_path) < since - 5.0:
             return None
         lines = [ln.rstrip() for ln in Path(log_path).read_text(errors="replace").splitlines() if ln.strip()]
     except OSError:
-        return None
-    if not lines:
         return None
     starts = [i for i, ln in enumerate(lines) if ln.startswith("error (")]
     block = lines[starts[-1]:] if starts else lines[-1:]
@@ -132,14 +131,17 @@ def failed_jobs_of(workflow) -> list[FailedJob]:
 
 
 def explain_failed_jobs(jobs, *, since: float | None = None) -> list[str]:
-    """Console lines: for each failed job, its name, the reason from its log and the log's path."""
+    """Console lines: for each failed job, its name, the reason from its log and the log's path
+    (nothing for a job of a failed group that did not start in this run)."""
     out = []
     for job in jobs:
+        if not job.logs:
+            out.append(f"FAILED {job.name()} (it has no log: see Snakemake's message above)")
         for log in job.logs:
             reason = failure_reason(log, since=since)
             if reason is None:
                 continue
-            out.append(f"FAILED {job.name()}: {reason[0]}")
+            out.append(f"FAILED {job.name()}: {reason[0] if reason else 'its log is empty (stopped from outside?)'}")
             out += [f"    {ln}" for ln in reason[1:]]
             out.append(f"    (log: {log})")
     return out
@@ -164,15 +166,18 @@ def write_partial_summary(summary_csv, range_h5s: dict, failed: dict) -> list[st
             f"without a result: {', '.join(failed)} (their rows say why). The next run rewrites it."]
 
 
-def tips_without_result(jobs, tips, range_h5_of) -> dict:
+def tips_without_result(jobs, tips, range_h5_of, *, since: float | None = None) -> dict:
     """tip -> reason (one line) for every tip that has a failed job in this run or no stage-5
     file: which job failed, the first lines of its reason and its log."""
     out = {}
     for tip in tips:
         reasons = []
         for job in (j for j in jobs if j.wildcards.get("tip") == tip):
-            why = next(filter(None, (failure_reason(log) for log in job.logs)), None) or ["no reason in its log"]
-            detail = " ".join(" ".join(ln.split()) for ln in why[:2]) + (" ..." if len(why) > 2 else "")
+            why = next(filter(None, (failure_reason(log, since=since) for log in job.logs)), None)
+            if why:
+                detail = " ".join(" ".join(ln.split()) for ln in why[:2]) + (" ..." if len(why) > 2 else "")
+            else:
+                detail = "no reason in its log (stopped from outside? see the console)"
             reasons.append(f"{job.name()} failed: {detail}" + (f" (log: {job.logs[0]})" if job.logs else ""))
         if reasons:
             out[tip] = "; ".join(reasons)
@@ -187,8 +192,9 @@ def report_failed_run(workflow, log, *, results: str, tips) -> None:
     listing the failed ones with the reason."""
     report_failed_cluster_jobs(log)
     own = read_own_run_record()
+    since = own.get("started") if own else None
     jobs = failed_jobs_of(workflow)
-    for line in explain_failed_jobs(jobs, since=own.get("started") if own else None):
+    for line in explain_failed_jobs(jobs, since=since):
         print(line, file=sys.stderr)
     summary_csv = f"{results}/summary.csv"
     summary_waits = any(summary_csv in map(str, j.output) for j in _pending_jobs(workflow))
@@ -198,8 +204,10 @@ def report_failed_run(workflow, log, *, results: str, tips) -> None:
         print(f"{summary_csv} not written (a file there is from an earlier run): run with --keep-going (-k; "
               "`make run` does) to get the summary of the tips that finish", file=sys.stderr)
         return
-    range_h5_of = lambda tip: f"{results}/{tip}/adhesion_range.h5"  # noqa: E731
-    failed = tips_without_result(jobs, tips, range_h5_of)
+    def range_h5_of(tip):
+        return f"{results}/{tip}/adhesion_range.h5"
+
+    failed = tips_without_result(jobs, tips, range_h5_of, since=since)
     good = {tip: range_h5_of(tip) for tip in tips if tip not in failed}
     for line in write_partial_summary(summary_csv, good, failed):
         print(line, file=sys.stderr)
