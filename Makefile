@@ -57,7 +57,7 @@ test-cluster: $(BIN)/.installed ## the SLURM profile on a local single-node SLUR
 test-latest:                    ## the default suite against the newest releases (not the lock)
 	rm -rf .venv-latest
 	$(PYTHON) -m venv .venv-latest
-	.venv-latest/bin/python -m pip install --quiet --upgrade pip
+	.venv-latest/bin/python -m pip install --quiet --upgrade pip setuptools
 	.venv-latest/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e ".[test]"
 	.venv-latest/bin/python scripts/lock_drift.py $(LOCK)
 	.venv-latest/bin/pytest
