@@ -2,12 +2,16 @@
 # Run:  snakemake --cores 2        (settings: config/config.yaml, one YAML per tip in config/tips/)
 from snakemake.utils import min_version
 
-from pipeline.workflow_support import report_failed_cluster_jobs
+from pipeline.workflow_support import record_run_end, record_run_start, report_failed_run
 
 min_version("9.0")
 
 
 configfile: "config/config.yaml"
+
+
+# `snakemake --report`: the workflow description; each result's caption says what to look for.
+report: "workflow_rules/report/workflow.rst"
 
 
 include: "workflow_rules/common.smk"
@@ -31,7 +35,22 @@ rule all:
     default_target: True
 
 
-# On a cluster: say for each failed SLURM job why it ended (time, memory, cancelled) and which
-# rule, tip and interval it was running (Snakemake names only the group for grouped jobs).
+# Who holds the lock: `python -m pipeline unlock-stale` (run by `make run`) removes the lock of a
+# run that was killed, never that of a live one (pipeline/workflow_support.py).
+onstart:
+    record_run_start()
+
+
+onsuccess:
+    record_run_end()
+
+
+# Say on the console why each job failed (the reason from its log) and, on a cluster, why SLURM
+# ended it (time, memory, cancelled) and which rule, tip and interval it was running (Snakemake
+# names only the group for grouped jobs).  With --keep-going, write the summary of the tips that
+# finished, with a row for each tip that failed saying why.
 onerror:
-    report_failed_cluster_jobs(log)
+    try:
+        report_failed_run(workflow, log, results=RESULTS, tips=list(TIPS))
+    finally:
+        record_run_end()

@@ -2,19 +2,21 @@
 
     python -m pipeline profiles  --tip-config config/tips/tipA.yaml --interval scan000 --out-h5 ... --out-png ...
     python -m pipeline fit       --tip-config ... --interval ... --profile-h5 ... --out-h5 ...
-    python -m pipeline fit-figure --tip-config ... --out-png ... FIT_H5...
+    python -m pipeline fit-figure --out-png ... FIT_H5...
     python -m pipeline forces    --tip-config ... --interval ... --out-h5 ... --out-png ...
-    python -m pipeline inversion --tip-config ... --workflow-config ... --fits DIR --forces DIR --out-h5 ...
+    python -m pipeline inversion --tip-config ... --fits DIR --forces DIR --out-h5 ... --h-min M --h-max M --h-points N --laws dugdale,lj --solver-mode auto --mc-samples N --seed N
     python -m pipeline adhesion-range --tip-config ... --inversion-h5 ... --out-h5 ... --report-csv ...
     python -m pipeline adhesion-figures --tip NAME --range-h5 ... --w-of-h-png ... --adhesion-map-png ...
     python -m pipeline summary   --out-csv results/summary.csv RANGE_H5...
+    python -m pipeline rigid-laws-figure --out-png ...
     python -m pipeline validate  [--workflow-config config/config.yaml]
-    python -m pipeline make-samples --out data_samples
+    python -m pipeline make-samples [--out data_samples] [--config-dir config/tips]
     python -m pipeline mechanics-figure --out fig7.png [--n 2,5] [--fast]
+    python -m pipeline unlock-stale [--directory .]
 
-Each subcommand loads and validates the tip YAML (units -> SI), then calls one
-function of the science package.  Errors print one line naming the file and the
-reason and exit with status 1.
+Each stage loads and validates the tip YAML (units -> SI), then calls one function of the
+science package.  Errors print one line naming the file and the reason and exit with
+status 1.  `python -m pipeline <command> --help` lists a command's options.
 """
 from __future__ import annotations
 
@@ -144,66 +146,98 @@ def cmd_make_samples(a):
     write_sample_bundle(a.out, config_dir=a.config_dir)
 
 
+COMMAND_HELP = {  # one line each (argparse prints them beside the names)
+    "profiles": "stage 1: TEM image -> apex profile z(r), figure",
+    "fit": "stage 2: power-law fit z = r^n/(nQ) of one profile",
+    "fit-figure": "a tip's profiles and fits in one figure (Fig. 3a/c)",
+    "forces": "stage 3: force curves -> pull-off forces F_p, figure",
+    "inversion": "stage 4: W_A(h) per interval and law, Monte Carlo",
+    "adhesion-range": "stage 5: a tip's h and W_A, per-interval CSV",
+    "adhesion-figures": "W_A(h) (Fig. 3b/d) and adhesion map (Fig. 5) of a tip",
+    "summary": "summary CSV, one row per tip and traction law",
+    "rigid-laws-figure": "rigid pull-off of the 4 traction laws vs n (Fig. 8)",
+    "mechanics-figure": "pull-off vs h for the 4 laws, elastic and rigid (Fig. 7)",
+    "validate": "check config.yaml and every tip YAML, no run",
+    "make-samples": "write the seeded synthetic sample wear test",
+    "unlock-stale": "remove a killed run's Snakemake lock (not a live one's)",
+}
+
+
+def cmd_unlock_stale(a):
+    import subprocess
+
+    from pipeline.workflow_support import stale_lock
+
+    state, message = stale_lock(a.directory)
+    if message:
+        print(f"{message}{'; unlocking it' if state == 'stale' else ''}", file=sys.stderr)
+    if state == "stale":
+        proc = subprocess.run([sys.executable, "-m", "snakemake", "--unlock", "--cores", "1"],
+                              cwd=a.directory, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"snakemake --unlock in {a.directory} failed: {proc.stderr.strip().splitlines()[-1:]}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="cmd", required=True)
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="<command>")
 
     def stage(name, func, tip=True, interval=False):
-        s = sub.add_parser(name)
+        s = sub.add_parser(name, help=COMMAND_HELP[name], description=COMMAND_HELP[name])
         if tip:
-            s.add_argument("--tip-config", required=True)
+            s.add_argument("--tip-config", required=True, help="the tip's YAML (config/tips/<tip>.yaml)")
         if interval:
-            s.add_argument("--interval", required=True)
+            s.add_argument("--interval", required=True, help="interval name as in the tip YAML")
         s.set_defaults(func=func)
         return s
 
     s = stage("profiles", cmd_profiles, interval=True)
-    s.add_argument("--out-h5", required=True)
-    s.add_argument("--out-png", required=True)
+    s.add_argument("--out-h5", required=True, help="profile HDF5 to write")
+    s.add_argument("--out-png", required=True, help="figure: the image with the detected edge and axis")
 
     s = stage("fit", cmd_fit, interval=True)
-    s.add_argument("--profile-h5", required=True)
-    s.add_argument("--out-h5", required=True)
+    s.add_argument("--profile-h5", required=True, help="the interval's profile HDF5 (stage 1)")
+    s.add_argument("--out-h5", required=True, help="fit HDF5 to write")
 
     s = stage("fit-figure", cmd_fit_figure, tip=False)
-    s.add_argument("--out-png", required=True)
-    s.add_argument("fit_h5", nargs="+")
+    s.add_argument("--out-png", required=True, help="figure to write")
+    s.add_argument("fit_h5", nargs="+", help="fit HDF5 files (stage 2), one per interval")
 
     s = stage("forces", cmd_forces, interval=True)
-    s.add_argument("--out-h5", required=True)
-    s.add_argument("--out-png", required=True)
+    s.add_argument("--out-h5", required=True, help="forces HDF5 to write")
+    s.add_argument("--out-png", required=True, help="figure: retract curves, baselines and pull-offs")
 
     s = stage("inversion", cmd_inversion)
     s.add_argument("--fits", required=True, help="folder of per-interval fit HDF5 files")
     s.add_argument("--forces", required=True, help="folder of per-interval forces HDF5 files")
-    s.add_argument("--out-h5", required=True)
-    s.add_argument("--h-min", type=float, required=True, help="m")
-    s.add_argument("--h-max", type=float, required=True, help="m")
-    s.add_argument("--h-points", type=int, required=True)
-    s.add_argument("--h-spacing", choices=["log", "linear"], default="log")
-    s.add_argument("--laws", required=True, help="comma-separated traction laws")
-    s.add_argument("--solver-mode", choices=["auto", "mdn", "rigid"], required=True)
-    s.add_argument("--mc-samples", type=int, required=True)
-    s.add_argument("--seed", type=int, required=True)
+    s.add_argument("--out-h5", required=True, help="inversion HDF5 to write")
+    s.add_argument("--h-min", type=float, required=True, help="smallest adhesion range h of the grid, m")
+    s.add_argument("--h-max", type=float, required=True, help="largest adhesion range h of the grid, m")
+    s.add_argument("--h-points", type=int, required=True, help="number of h grid points")
+    s.add_argument("--h-spacing", choices=["log", "linear"], default="log", help="h grid spacing (default: log)")
+    s.add_argument("--laws", required=True, help="comma-separated traction laws (dugdale, lj, tri1, tri2)")
+    s.add_argument("--solver-mode", choices=["auto", "mdn", "rigid"], required=True, help="Dugdale-law solver")
+    s.add_argument("--mc-samples", type=int, required=True, help="Monte Carlo samples")
+    s.add_argument("--seed", type=int, required=True, help="Monte Carlo random seed")
 
     s = stage("adhesion-range", cmd_adhesion_range)
-    s.add_argument("--inversion-h5", required=True)
-    s.add_argument("--out-h5", required=True)
-    s.add_argument("--report-csv", required=True)
+    s.add_argument("--inversion-h5", required=True, help="the tip's inversion HDF5 (stage 4)")
+    s.add_argument("--out-h5", required=True, help="adhesion-range HDF5 to write")
+    s.add_argument("--report-csv", required=True, help="per-interval CSV to write")
     s.add_argument("--fig-dir", help="also draw W_A_vs_h.png and adhesion_map.png here")
 
     s = stage("adhesion-figures", cmd_adhesion_figures, tip=False)
-    s.add_argument("--tip", default="")
-    s.add_argument("--range-h5", required=True)
-    s.add_argument("--w-of-h-png", required=True)
-    s.add_argument("--adhesion-map-png", required=True)
+    s.add_argument("--tip", default="", help="tip name for the titles")
+    s.add_argument("--range-h5", required=True, help="the tip's adhesion-range HDF5 (stage 5)")
+    s.add_argument("--w-of-h-png", required=True, help="W_A(h) figure to write")
+    s.add_argument("--adhesion-map-png", required=True, help="adhesion-map figure to write")
 
     s = stage("summary", cmd_summary, tip=False)
-    s.add_argument("--out-csv", required=True)
-    s.add_argument("range_h5", nargs="+")
+    s.add_argument("--out-csv", required=True, help="summary CSV to write")
+    s.add_argument("range_h5", nargs="+", help="adhesion-range HDF5 files (stage 5), one per tip in <tip>/")
 
     s = stage("rigid-laws-figure", cmd_rigid_laws_figure, tip=False)
-    s.add_argument("--out-png", required=True)
+    s.add_argument("--out-png", required=True, help="figure to write")
 
     s = stage("mechanics-figure", cmd_mechanics_figure, tip=False)
     s.add_argument("--out", required=True, help="PNG: pull-off vs h for the four laws, elastic and rigid (paper Fig. 7)")
@@ -211,11 +245,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fast", action="store_true", help="elastic values from the table instead of direct solves")
 
     s = stage("validate", cmd_validate, tip=False)
-    s.add_argument("--workflow-config", default="config/config.yaml")
+    s.add_argument("--workflow-config", default="config/config.yaml", help="default: config/config.yaml")
 
     s = stage("make-samples", cmd_make_samples, tip=False)
-    s.add_argument("--out", default="data_samples")
+    s.add_argument("--out", default="data_samples", help="folder for the data (default: data_samples)")
     s.add_argument("--config-dir", default="config/tips", help="where to write the sample tips' YAMLs")
+
+    s = stage("unlock-stale", cmd_unlock_stale, tip=False)
+    s.add_argument("--directory", default=".", help="Snakemake's working directory (default: .)")
     return p
 
 

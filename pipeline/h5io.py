@@ -17,20 +17,45 @@ import h5py
 import numpy as np
 
 
+def _umask() -> int:
+    """The process's file-mode creation mask (read without changing it where Linux allows)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)  # elsewhere: read by setting and restoring it
+    os.umask(mask)
+    return mask
+
+
+def _temporary_file_beside(path: Path, prefix: str, suffix: str) -> str:
+    """An empty file in ``path``'s folder to write into and then rename onto ``path``.
+
+    ``mkstemp`` creates it with mode 0600; it gets the mode ``open()`` would have given
+    (0666 less the umask), so that results are readable by whoever the umask lets read them."""
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
+    os.close(fd)
+    os.chmod(tmp, 0o666 & ~_umask())
+    return tmp
+
+
 @contextlib.contextmanager
 def atomic_h5(path, *, stage: str, **attrs):
     """Open a temporary HDF5 file for writing and move it to ``path`` on success.
 
     Root attributes: ``stage``, ``pipeline_version`` and any ``attrs`` given
     (dicts/lists are stored as JSON text).  On any exception the temporary file
-    is removed and ``path`` is left untouched (or absent).
+    is removed and ``path`` is left untouched (or absent).  The file gets the mode ``open()``
+    would give it (0666 less the umask).
     """
     from pipeline import __version__
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    os.close(fd)
+    tmp = _temporary_file_beside(path, f".{path.name}.", ".part")
     try:
         with h5py.File(tmp, "w") as f:
             f.attrs["NX_class"] = "NXroot"
@@ -53,8 +78,7 @@ def atomic_output(path):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
+    tmp = _temporary_file_beside(path, f".{path.stem}.", path.suffix)
     try:
         yield Path(tmp)
         os.replace(tmp, path)

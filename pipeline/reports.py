@@ -259,11 +259,13 @@ def summary_rows(rng: dict) -> list:
     return rows
 
 
-def write_summary(tip_range_h5s: dict, out_csv):
+def write_summary(tip_range_h5s: dict, out_csv, *, failed: dict | None = None):
     """results/summary.csv: one row per tip and traction law (like the paper's Table 1).
 
     ``tip_range_h5s`` maps tip name -> stage-5 HDF5 (a list of paths is accepted too; the tip
-    name is then read from the files).
+    name is then read from the files).  ``failed`` maps the name of a tip without a result to
+    the reason (which job failed and why): it gets one row, status ``failed``, the reason in
+    ``notes`` and every number empty.
     """
     items = tip_range_h5s.items() if isinstance(tip_range_h5s, dict) else [(None, p) for p in tip_range_h5s]
     rows = []
@@ -272,5 +274,6 @@ def write_summary(tip_range_h5s: dict, out_csv):
         if tip:
             rng["tip"] = str(tip)
         rows += summary_rows(rng)
+    rows += [{"tip": tip, "status": "failed", "notes": reason} for tip, reason in (failed or {}).items()]
     _write_csv(out_csv, SUMMARY_COLUMNS, rows)
     return rows

@@ -2,10 +2,12 @@
 
 Checks the frame's promises: the run writes summary.csv with W_A and h per tip,
 a second dry run has nothing to do, touching one tip's YAML reruns that tip only,
-and a bad tip YAML fails before any job runs, naming the file and the key.
+a bad tip YAML fails before any job runs, naming the file and the key, and a tip whose
+jobs fail costs the other tip nothing (``--keep-going``), with the reason on the console.
 """
 import csv
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -60,6 +62,39 @@ def test_run_writes_summary_with_wa_and_h(finished_run):
     for t in truth:
         assert (finished_run / "results" / t / "profiles" / "scan000.png").stat().st_size > 10_000
         assert (finished_run / "results" / t / "W_A_vs_h.png").is_file()
+
+
+def test_every_output_is_readable_as_the_umask_allows(finished_run):
+    umask = os.umask(0)
+    os.umask(umask)
+    files = [p for p in (finished_run / "results").rglob("*") if p.is_file()]
+    assert len(files) > 40
+    wrong = {str(p): oct(p.stat().st_mode & 0o777) for p in files if p.stat().st_mode & 0o777 != 0o666 & ~umask}
+    assert not wrong, f"expected {oct(0o666 & ~umask)}"
+
+
+def test_every_report_item_has_a_caption_and_the_workflow_a_description():
+    import re
+
+    calls = [(smk.name, m.group(0)) for smk in (ROOT / "workflow_rules").glob("*.smk")
+             for m in re.finditer(r"report\((?:[^()]|\([^()]*\))*\)", smk.read_text())]
+    assert len(calls) == 8
+    for smk, call in calls:
+        caption = re.search(r'caption="([^"]+)"', call)
+        assert caption, f"{smk}: {call} has no caption"
+        text = (ROOT / "workflow_rules" / caption.group(1)).read_text()
+        assert len(text.split()) > 40, caption.group(1)
+    described = re.search(r'^report: "([^"]+)"', (ROOT / "Snakefile").read_text(), re.MULTILINE)
+    assert described and "Where to start" in (ROOT / described.group(1)).read_text()
+
+
+def test_report_shows_the_captions(finished_run, tmp_path):
+    proc = snakemake(finished_run, "--report", str(tmp_path / "report.html"))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    html = (tmp_path / "report.html").read_text()
+    assert "Where to start" in html  # the workflow description
+    assert html.count("What to look for") == 2 * (3 + 3 + 1 + 1 + 1 + 1) + 1  # per tip: profiles, forces x3; fits, W_A(h), map, table; summary
+    assert "Tip <strong>tipB_Si</strong>, interval <strong>scan030</strong>" in html  # wildcards filled in
 
 
 def test_second_dry_run_has_nothing_to_do(finished_run):
@@ -122,3 +157,48 @@ def test_bad_tip_yaml_fails_before_any_job(finished_run, tmp_path, edit, needle)
     assert proc.returncode != 0
     assert str(tips / "tipB_Si.yaml") in proc.stderr and needle in proc.stderr, proc.stderr[-2000:]
     assert not (work / "results").exists()  # nothing ran, nothing written
+
+
+def copy_of_run(src: Path, dst: Path) -> Path:
+    """A finished run in another folder (Snakemake's records keep it up to date there)."""
+    shutil.copytree(src, dst, symlinks=True)
+    for path in [dst / "config.yaml", *(dst / "tips").glob("*.yaml")]:
+        path.write_text(path.read_text().replace(str(src), str(dst)))
+    return dst
+
+
+def read_summary(work):
+    with open(work / "results" / "summary.csv") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_a_failing_tip_costs_the_other_its_summary_and_says_why_on_the_console(finished_run, tmp_path):
+    work = copy_of_run(finished_run, tmp_path / "wf")
+    before = read_summary(work)
+    path = work / "tips" / "tipB_Si.yaml"
+    cfg = yaml.safe_load(path.read_text())
+    cfg.setdefault("force_curves", {})["min_pulloff_snr"] = 1e6  # every curve of tip B is rejected
+    path.write_text(yaml.safe_dump(cfg))
+    shutil.rmtree(work / "results" / "tipB_Si" / "forces")  # the copy has no records of params: rerun by absence
+
+    # without --keep-going the summary is not touched and the console says how to get it
+    proc = snakemake(work)
+    assert proc.returncode != 0
+    assert "run with --keep-going" in proc.stderr and read_summary(work) == before
+
+    proc = snakemake(work, "--keep-going")
+    assert proc.returncode != 0  # the run still fails: tip B has no result
+    # the reason from the job's log stands on the console, after Snakemake's "Error in rule"
+    for iv in ("scan000", "scan030", "scan100"):
+        line = f"FAILED rule forces (tip=tipB_Si, interval={iv}): error (forces): "
+        assert line in proc.stderr, proc.stderr[-3000:]
+    assert "rejected" in proc.stderr.split("FAILED rule forces", 1)[1]
+    assert f"(log: {work}/results/logs/tipB_Si/forces/scan000.log)" in proc.stderr
+
+    rows = read_summary(work)
+    assert [r for r in rows if r["tip"] == "tipA_DLC"] == [r for r in before if r["tip"] == "tipA_DLC"]
+    (b,) = [r for r in rows if r["tip"] == "tipB_Si"]
+    assert b["status"] == "failed" and b["W_A_mJ_per_m2"] == "" and b["h_nm"] == ""
+    assert "rule forces (tip=tipB_Si, interval=scan000) failed: error (forces): " in b["notes"]
+    # a summary without tip B is never taken as final: the next run writes it anew
+    assert any(" summary " in line for line in planned_commands(work))

@@ -9,7 +9,7 @@ rule adhesion_range:
         inversion=f"{RESULTS}/{{tip}}/inversion.h5",
     output:
         h5=f"{RESULTS}/{{tip}}/adhesion_range.h5",
-        csv=report(f"{RESULTS}/{{tip}}/{{tip}}_report.csv", category="4 Adhesion range", subcategory="{tip}"),
+        csv=report(f"{RESULTS}/{{tip}}/{{tip}}_report.csv", caption="report/tip_report.rst", category="4 Adhesion range", subcategory="{tip}"),
     params:
         tip=tip_yaml,
     log:
@@ -27,8 +27,8 @@ rule adhesion_figures:
     input:
         f"{RESULTS}/{{tip}}/adhesion_range.h5",
     output:
-        wa_h=report(f"{RESULTS}/{{tip}}/W_A_vs_h.png", category="4 Adhesion range", subcategory="{tip}"),
-        amap=report(f"{RESULTS}/{{tip}}/adhesion_map.png", category="4 Adhesion range", subcategory="{tip}"),
+        wa_h=report(f"{RESULTS}/{{tip}}/W_A_vs_h.png", caption="report/w_of_h.rst", category="4 Adhesion range", subcategory="{tip}"),
+        amap=report(f"{RESULTS}/{{tip}}/adhesion_map.png", caption="report/adhesion_map.rst", category="4 Adhesion range", subcategory="{tip}"),
     log:
         f"{RESULTS}/logs/{{tip}}/adhesion_figures.log",
     benchmark:

@@ -26,7 +26,7 @@ rule fits_figure:
     input:
         lambda w: expand(f"{RESULTS}/{w.tip}/fits/{{interval}}.h5", interval=INTERVALS[w.tip]),
     output:
-        report(f"{RESULTS}/{{tip}}/fits.png", category="2 Fits", subcategory="{tip}"),
+        report(f"{RESULTS}/{{tip}}/fits.png", caption="report/fits.rst", category="2 Fits", subcategory="{tip}"),
     log:
         f"{RESULTS}/logs/{{tip}}/fits_figure.log",
     benchmark:

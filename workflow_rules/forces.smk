@@ -9,7 +9,7 @@ rule forces:
         calibration=lambda w: [str(p) for p in interval_cfg(w).get("calibration_paths", [])],
     output:
         h5=f"{RESULTS}/{{tip}}/forces/{{interval}}.h5",
-        png=report(f"{RESULTS}/{{tip}}/forces/{{interval}}.png", category="3 Forces", subcategory="{tip}"),
+        png=report(f"{RESULTS}/{{tip}}/forces/{{interval}}.png", caption="report/forces.rst", category="3 Forces", subcategory="{tip}"),
     params:
         tip=tip_yaml,
         settings=stage_settings("forces"),

@@ -8,7 +8,7 @@ rule profiles:
         image=lambda w: str(interval_cfg(w)["image_path"]),
     output:
         h5=f"{RESULTS}/{{tip}}/profiles/{{interval}}.h5",
-        png=report(f"{RESULTS}/{{tip}}/profiles/{{interval}}.png", category="1 Profiles", subcategory="{tip}"),
+        png=report(f"{RESULTS}/{{tip}}/profiles/{{interval}}.png", caption="report/profiles.rst", category="1 Profiles", subcategory="{tip}"),
     params:
         tip=tip_yaml,
         settings=stage_settings("profiles"),

@@ -7,7 +7,7 @@ rule summary:
     input:
         expand(f"{RESULTS}/{{tip}}/adhesion_range.h5", tip=TIPS),
     output:
-        report(f"{RESULTS}/summary.csv", category="5 Summary"),
+        report(f"{RESULTS}/summary.csv", caption="report/summary.rst", category="5 Summary"),
     log:
         f"{RESULTS}/logs/summary.log",
     benchmark:
@@ -20,7 +20,7 @@ rule rigid_laws_figure:
     conda:
         CONDA_ENV
     output:
-        report(f"{RESULTS}/rigid_laws.png", category="5 Summary"),
+        report(f"{RESULTS}/rigid_laws.png", caption="report/rigid_laws.rst", category="5 Summary"),
     log:
         f"{RESULTS}/logs/rigid_laws_figure.log",
     benchmark:

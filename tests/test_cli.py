@@ -1,0 +1,53 @@
+"""`python -m pipeline --help`: one line per command saying what it does, and the usage lines
+in the help name only options that exist (and every required one)."""
+import argparse
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+from pipeline import cli
+
+
+def subparsers():
+    action = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return action.choices
+
+
+def test_help_lists_every_command_with_its_one_line_description():
+    out = subprocess.run([sys.executable, "-m", "pipeline", "--help"], capture_output=True, text=True,
+                         env={**os.environ, "COLUMNS": "200"})
+    assert out.returncode == 0
+    for name in subparsers():
+        assert re.search(rf"^\s+{re.escape(name)}\s+{re.escape(cli.COMMAND_HELP[name])}$", out.stdout, re.MULTILINE), name
+    assert set(cli.COMMAND_HELP) == set(subparsers())
+
+
+def usage_lines():
+    return [ln.split("python -m pipeline ", 1)[1].split() for ln in cli.__doc__.splitlines() if ln.startswith("    python -m pipeline ")]
+
+
+def test_usage_in_the_help_matches_the_options():
+    documented = {words[0]: words[1:] for words in usage_lines()}
+    assert set(documented) == set(subparsers())
+    for name, sub in subparsers().items():
+        known = {opt for a in sub._actions for opt in a.option_strings}
+        required = {a.option_strings[0] for a in sub._actions if a.required and a.option_strings}
+        named = {w.strip("[]") for w in documented[name] if w.strip("[]").startswith("--")}
+        assert named <= known, f"{name}: the help names {named - known}, which do not exist"
+        assert required <= named, f"{name}: required {required - named} missing from the help"
+
+
+def test_inversion_has_no_workflow_config_option():
+    assert "--workflow-config" not in subparsers()["inversion"].format_help()
+
+
+@pytest.mark.parametrize("name", ["forces", "inversion", "unlock-stale"])
+def test_each_command_describes_itself_and_its_options(name):
+    text = subparsers()[name].format_help()
+    assert cli.COMMAND_HELP[name] in " ".join(text.split())
+    # every option says what it is, except -h
+    sub = subparsers()[name]
+    assert all(a.help for a in sub._actions if a.option_strings and a.option_strings[0] != "-h")
