@@ -192,7 +192,7 @@ def _rsciio_tiff_calibration(path):
     old = log.level
     log.setLevel(logging.ERROR)
     try:
-        items = file_reader(str(path), lazy=True)
+        items = file_reader(str(path), lazy=False)  # lazy would leave the file open
     except Exception:  # noqa: BLE001 - the tag reader has already read the data; no calibration then
         return None
     finally:
