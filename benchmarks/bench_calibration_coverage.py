@@ -11,7 +11,7 @@ Prints per kind and per model of inconsistent intervals (random effects, the def
 scaling): median and worst |h error|, |W_A error|, worst interval F_p error (as stage 4 uses it),
 coverage of the 95 % intervals of h and W_A, how often the intervals were widened, and the run
 time.  The force curves come from the independent instrument simulator
-(``pipeline.synth.afm_instrument``; ``--generator lorentzian`` for the stage's own).  Usage: python benchmarks/bench_calibration_coverage.py [seeds per kind, default 40]
+(``pipeline.synth.afm_instrument``; ``--generator lorentzian`` for the stage's own).  Usage: python benchmarks/bench_calibration_coverage.py [seeds per kind, default 40] [--kinds rigid,hidden_bias] [--generator lorentzian]
 """
 from __future__ import annotations
 
@@ -26,11 +26,11 @@ from pipeline.synth.calibration_study import draw_case, run_case
 KINDS = ("rigid", "elastic", "wrong_reference", "hidden_bias", "rigid/oracle", "elastic/oracle")
 
 
-def main(n_seeds=40, generator="instrument"):
+def main(n_seeds=40, generator="instrument", kinds=KINDS):
     """``kind/oracle``: the same cases with every interval's true InvOLS given (a perfect
     calibration): what is left is the error of the shape fits and of the pull-off scatter."""
     rows = {}
-    for kind in KINDS:
+    for kind in kinds:
         t0 = time.perf_counter()
         base, _, oracle = kind.partition("/")
         rows[kind] = [run_case(draw_case(1000 + s, base), oracle_invols=bool(oracle), generator=generator)
@@ -39,7 +39,7 @@ def main(n_seeds=40, generator="instrument"):
     head = (f"{'kind':22s} {'cases':>5s} {'med|dh|':>8s} {'max|dh|':>8s} {'med|dW|':>8s} {'max|dW|':>8s} "
             f"{'max|dF|':>8s} {'cov h':>6s} {'cov W':>6s} {'widened':>8s} {'med hw':>7s} {'L/Lb>1':>6s} {'s/case':>7s}")
     print(head)
-    for kind in KINDS:
+    for kind in kinds:
         for model, pre in (("random effects", ""), ("Birge", "birge_")):
             r = [x for x in rows[kind] if x[pre + "status"] == "ok"]
             if not r:
@@ -64,4 +64,6 @@ if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     gen = "lorentzian" if "--generator" in sys.argv and sys.argv[sys.argv.index("--generator") + 1] == "lorentzian" else "instrument"
     args = [a for a in args if a != "lorentzian"]
-    main(int(args[0]) if args else 40, gen)
+    kinds = tuple(sys.argv[sys.argv.index("--kinds") + 1].split(",")) if "--kinds" in sys.argv else KINDS
+    args = [a for a in args if not ("--kinds" in sys.argv and a == sys.argv[sys.argv.index("--kinds") + 1])]
+    main(int(args[0]) if args else 40, gen, kinds)

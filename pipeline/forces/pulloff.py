@@ -277,9 +277,18 @@ def _transition_start(dc, i_rise, i_min, step_c, noise):
     ``i_rise``, samples that rose from their predecessor by more than max(1.5 x the contact line's
     change per sample ``step_c``, 4 x noise) belong to the jump (an anti-alias filter spreads it
     over several samples); a detaching branch near its corner rises about as fast as the contact
-    line fell."""
+    line fell.
+
+    A causal filter's step response rises no longer than it settles, so the walk goes back at most
+    one sample more than the rises after the largest one last: a lever that left the contact line
+    along the force law for several samples before a sharp jump is a detaching branch, not a filter
+    transition."""
+    thr = max(1.5 * step_c, 4.0 * noise)
+    after = 0
+    while i_rise + 2 + after < dc.size and dc[i_rise + 2 + after] - dc[i_rise + 1 + after] > thr:
+        after += 1
     j = i_rise
-    while j > i_min and dc[j] - dc[j - 1] > max(1.5 * step_c, 4.0 * noise):
+    while j > i_min and i_rise - j <= after and dc[j] - dc[j - 1] > thr:
         j -= 1
     return j
 
