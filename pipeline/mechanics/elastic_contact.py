@@ -68,6 +68,7 @@ from scipy import special as sp
 from scipy.optimize import minimize_scalar
 from threadpoolctl import threadpool_limits
 
+from .rigid import LJ_H_OVER_Z0
 from .traction_laws import TractionLaw, get_law
 
 __all__ = [
@@ -223,7 +224,7 @@ class _NoConvergence(RuntimeError):
     pass
 
 
-_LJ_FLOOR = -0.8 / 0.974  # s = -0.8 z0: L-J gaps are kept above this (d = 0 is singular)
+_LJ_FLOOR = -0.8 / LJ_H_OVER_Z0  # s = -0.8 z0: L-J gaps are kept above this (d = 0 is singular)
 
 
 def _newton(sys: _System, y, D, row, rhs, tol=1e-10, max_iter=30, patient=False):
