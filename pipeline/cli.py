@@ -80,7 +80,7 @@ def cmd_inversion(a):
     import numpy as np
 
     from pipeline.config import load_tip_config
-    from pipeline.inversion import run_inversion
+    from pipeline.inversion.stage import run_inversion
 
     tip = load_tip_config(a.tip_config)
     names = [iv["name"] for iv in tip["intervals"]]
@@ -96,7 +96,7 @@ def cmd_inversion(a):
 
 
 def cmd_adhesion_range(a):
-    from pipeline.adhesion_range import run_adhesion_range
+    from pipeline.adhesion_range.stage import run_adhesion_range
     from pipeline.config import load_tip_config
 
     tip = load_tip_config(a.tip_config)
@@ -104,26 +104,26 @@ def cmd_adhesion_range(a):
 
 
 def cmd_adhesion_figures(a):
-    from pipeline.figures_adhesion import plot_adhesion_map, plot_w_of_h
+    from pipeline.adhesion_range.figures import plot_adhesion_map, plot_w_of_h
 
     plot_w_of_h(a.range_h5, a.w_of_h_png, tip=a.tip)
     plot_adhesion_map(a.range_h5, a.adhesion_map_png, tip=a.tip)
 
 
 def cmd_summary(a):
-    from pipeline.reports import write_summary
+    from pipeline.adhesion_range.report import write_summary
 
     write_summary({Path(p).parent.name: p for p in a.range_h5}, a.out_csv)
 
 
 def cmd_rigid_laws_figure(a):
-    from pipeline.figures_adhesion import plot_rigid_laws
+    from pipeline.mechanics.figures import plot_rigid_laws
 
     plot_rigid_laws(a.out_png)
 
 
 def cmd_mechanics_figure(a):
-    from pipeline.figures_mechanics import plot_fig7
+    from pipeline.mechanics.figures import plot_fig7
 
     ns = tuple(float(v) for v in a.n.split(","))
     if not 1 <= len(ns) <= 4:

@@ -155,7 +155,7 @@ def write_partial_summary(summary_csv, range_h5s: dict, failed: dict) -> list[st
     The file is dated one second before the oldest of its inputs, so the next run of Snakemake
     takes it as out of date and writes it anew (a partial summary is never kept as final).
     Returns the console lines that say what was written."""
-    from pipeline.reports import write_summary
+    from pipeline.adhesion_range.report import write_summary
 
     write_summary(range_h5s, summary_csv, failed=failed)
     inputs = [os.path.getmtime(p) for p in range_h5s.values()]

@@ -158,9 +158,11 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
     compliance correction) against the weighted truth of the curves used."""
     import h5py
 
-    from pipeline.adhesion_range import analyse_law
+    from pipeline.adhesion_range.analysis import analyse_law
     from pipeline.forces.stage import run_forces
-    from pipeline.inversion import load_inversion, run_inversion, write_synthetic_fit
+    from pipeline.inversion.io import load_inversion
+    from pipeline.inversion.stage import run_inversion
+    from pipeline.synth.stage_inputs import write_synthetic_fit
 
     tmp = tempfile.TemporaryDirectory() if workdir is None else None
     root = Path(workdir or tmp.name)
@@ -212,7 +214,7 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
 
 def _max_lambda_ratio(case: Case) -> float:
     """Largest Lambda / Lambda_b(n) over the worn intervals at the true W_A, h (> 1: elastic, Eq. 13)."""
-    from pipeline.inversion import regime
+    from pipeline.inversion.solve import regime
 
     n = np.asarray(case.n[1:], float)
     q = case.S ** (n - 2.0) * case.R ** (n - 1.0)
