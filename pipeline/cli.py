@@ -4,7 +4,7 @@
     python -m pipeline fit       --tip-config ... --interval ... --profile-h5 ... --out-h5 ...
     python -m pipeline fit-figure --out-png ... FIT_H5...
     python -m pipeline forces    --tip-config ... --interval ... --out-h5 ... --out-png ...
-    python -m pipeline inversion --tip-config ... --fits DIR --forces DIR --out-h5 ... --h-min M --h-max M --h-points N --laws dugdale,lj --solver-mode auto --mc-samples N --seed N
+    python -m pipeline inversion --tip-config ... [--workflow-config config/config.yaml] --fits DIR --forces DIR --out-h5 ...
     python -m pipeline adhesion-range --tip-config ... --inversion-h5 ... --out-h5 ... --report-csv ...
     python -m pipeline adhesion-figures --tip NAME --range-h5 ... --w-of-h-png ... --adhesion-map-png ...
     python -m pipeline summary   --out-csv results/summary.csv RANGE_H5...
@@ -77,21 +77,18 @@ def cmd_forces(a):
 
 
 def cmd_inversion(a):
-    import numpy as np
-
-    from pipeline.config import load_tip_config
+    from pipeline.config import inversion_settings, load_tip_config, load_workflow_config
     from pipeline.inversion.stage import run_inversion
 
     tip = load_tip_config(a.tip_config)
+    settings = inversion_settings(load_workflow_config(a.workflow_config))  # h grid, laws, solver mode, Monte Carlo
     names = [iv["name"] for iv in tip["intervals"]]
     run_inversion(
         {n: str(Path(a.fits) / f"{n}.h5") for n in names},
         {n: str(Path(a.forces) / f"{n}.h5") for n in names},
         a.out_h5,
         intervals=[{"name": iv["name"], "scans": iv["scans"], "reference": iv["reference"]} for iv in tip["intervals"]],
-        E_star=tip["materials"]["E_star"], u_E_star=tip["materials"]["u_E_star"],
-        h_grid=np.geomspace(a.h_min, a.h_max, a.h_points) if a.h_spacing == "log" else np.linspace(a.h_min, a.h_max, a.h_points),
-        laws=a.laws.split(","), solver_mode=a.solver_mode, mc_samples=a.mc_samples, seed=a.seed, tip=tip["name"],
+        E_star=tip["materials"]["E_star"], u_E_star=tip["materials"]["u_E_star"], tip=tip["name"], **settings,
     )
 
 
@@ -208,17 +205,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out-png", required=True, help="figure: retract curves, baselines and pull-offs")
 
     s = stage("inversion", cmd_inversion)
+    s.add_argument("--workflow-config", default="config/config.yaml",
+                   help="the workflow config whose h_grid, traction_laws, solver_mode and monte_carlo (samples, seed) "
+                        "the inversion uses (default: config/config.yaml)")
     s.add_argument("--fits", required=True, help="folder of per-interval fit HDF5 files")
     s.add_argument("--forces", required=True, help="folder of per-interval forces HDF5 files")
     s.add_argument("--out-h5", required=True, help="inversion HDF5 to write")
-    s.add_argument("--h-min", type=float, required=True, help="smallest adhesion range h of the grid, m")
-    s.add_argument("--h-max", type=float, required=True, help="largest adhesion range h of the grid, m")
-    s.add_argument("--h-points", type=int, required=True, help="number of h grid points")
-    s.add_argument("--h-spacing", choices=["log", "linear"], default="log", help="h grid spacing (default: log)")
-    s.add_argument("--laws", required=True, help="comma-separated traction laws (dugdale, lj, tri1, tri2)")
-    s.add_argument("--solver-mode", choices=["auto", "mdn", "rigid"], required=True, help="Dugdale-law solver")
-    s.add_argument("--mc-samples", type=int, required=True, help="Monte Carlo samples")
-    s.add_argument("--seed", type=int, required=True, help="Monte Carlo random seed")
 
     s = stage("adhesion-range", cmd_adhesion_range)
     s.add_argument("--inversion-h5", required=True, help="the tip's inversion HDF5 (stage 4)")

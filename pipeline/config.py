@@ -206,6 +206,17 @@ def h_grid(cfg: dict) -> np.ndarray:
     return np.linspace(g["min"], g["max"], g["points"])
 
 
+# The workflow settings stage 4 (the inversion) reads; Snakemake reruns it when they change.
+INVERSION_KEYS = ("h_grid", "traction_laws", "solver_mode", "monte_carlo")
+
+
+def inversion_settings(cfg: dict) -> dict:
+    """``run_inversion``'s keyword arguments from a validated workflow config: the h grid (m), the
+    traction laws, the solver mode, the Monte Carlo size and its seed."""
+    return {"h_grid": h_grid(cfg), "laws": list(cfg["traction_laws"]), "solver_mode": cfg["solver_mode"],
+            "mc_samples": cfg["monte_carlo"]["samples"], "seed": cfg["monte_carlo"]["seed"]}
+
+
 # --------------------------------------------------------------------------- tips
 
 

@@ -282,3 +282,10 @@ def test_paraboloid_fit_matches_linear_least_squares():
     assert fit.n == 2.0 and fit.cov_n_lnQ[0, 0] == 0.0
     assert fit.R == pytest.approx(1e-9 / (2.0 * c[0]), rel=0.005)
     assert abs(np.log(fit.R / R)) < 3 * np.sqrt(fit.cov_n_lnQ[1, 1])
+
+
+def test_lj_convention_is_the_mechanics_one():
+    """The reports' z0 = h/0.974 (pipeline.inversion.laws) is the L-J law the mechanics solves (Eq. 14)."""
+    from pipeline.inversion.laws import LJ_Z0_OVER_H
+
+    assert LJ_Z0_OVER_H == 1.0 / mech.LJ_H_OVER_Z0
