@@ -21,7 +21,6 @@ status 1.  `python -m pipeline <command> --help` lists a command's options.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -132,7 +131,7 @@ def cmd_validate(a):
     from pipeline.config import discover_tips, load_tip_config, load_workflow_config
 
     wf = load_workflow_config(a.workflow_config)
-    for name, path in discover_tips(wf).items():
+    for path in discover_tips(wf).values():
         tip = load_tip_config(path)
         print(f"{path}: ok ({len(tip['intervals'])} intervals, E* = {tip['materials']['E_star'] / 1e9:.4g} GPa)")
 

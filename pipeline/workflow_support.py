@@ -325,7 +325,7 @@ def stale_lock(workdir=".") -> tuple[str, str]:
             continue
     state = [(path, rec, _alive(rec)) for path, rec in records]
     dead = [rec for path, rec, alive in state if alive is False]
-    for path, rec, alive in state:
+    for path, _rec, alive in state:
         if alive is False:
             path.unlink(missing_ok=True)
     if not locks:

@@ -18,7 +18,6 @@ the thermal k scales as 1/InvOLS^2).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +27,14 @@ from pipeline.forces.curve import ForceCurve
 from pipeline.forces.errors import CalibrationError, ForceCurveError
 from pipeline.forces.invols import PER_INTERVAL_METHODS
 from pipeline.forces.reference_lever import reference_lever_k
-from pipeline.forces.settings import (CANTILEVER_DEFAULTS, READER_DEFAULTS, REFERENCE_DEFAULTS, THERMAL_DEFAULTS,
-                                      resolve_paths, with_defaults)
+from pipeline.forces.settings import (
+    CANTILEVER_DEFAULTS,
+    READER_DEFAULTS,
+    REFERENCE_DEFAULTS,
+    THERMAL_DEFAULTS,
+    resolve_paths,
+    with_defaults,
+)
 from pipeline.forces.thermal import SHAPE_FACTOR, fit_sho, read_thermal_file, thermal_k
 
 

@@ -18,7 +18,15 @@ from __future__ import annotations
 import h5py
 import numpy as np
 
-from pipeline.h5io import atomic_h5, create_group, read_attr_json, read_dataset, read_value, require_group, write_dataset
+from pipeline.h5io import (
+    atomic_h5,
+    create_group,
+    read_attr_json,
+    read_dataset,
+    read_value,
+    require_group,
+    write_dataset,
+)
 from pipeline.inversion.hgrid import interp_loglog
 from pipeline.inversion.laws import CONVENTIONS, full_model_name
 from pipeline.inversion.montecarlo import sample_percentiles

@@ -118,7 +118,7 @@ def _mdn_difference_panel(ax, h, cases) -> None:
     """(elastic law - M-D-n) / M-D-n of every law and n of one tip, Tri1 and Tri2 at the largest
     h and n annotated (the paper's +17 % / -23 % at n = 5)."""
     for c, fill in zip(cases, FILLS):
-        for law, (color, mk, lab) in LAW_STYLE.items():
+        for law, (color, mk, _label) in LAW_STYLE.items():
             d = c["laws"][law]
             ax.plot(h, 100 * (d["elastic"] / c["mdn"] - 1), mk + "-", color=color, ms=5, lw=0.8, fillstyle=fill)
         last = cases[-1]

@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 
-
 @dataclass
 class Case:
     seed: int

@@ -324,7 +324,10 @@ def _rotation_derivative(render, base, apex, px, step_px, L0):
     return out
 
 
-def crb_summary(res: FisherResult, heights=np.arange(1, 7) * 1e-9, edge_snr=None):
+CRB_HEIGHTS = np.arange(1, 7) * 1e-9  # m, crb_summary's default heights above the apex
+
+
+def crb_summary(res: FisherResult, heights=CRB_HEIGHTS, edge_snr=None):
     """Bounds from a FisherResult: CRB of n (full nuisances, optimistic) and of the relative rigid
     Dugdale pull-off area error (Eq. 12, ``pipeline.fits.rigid_dugdale_area``) at ``heights`` (m).
 
