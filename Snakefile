@@ -24,6 +24,7 @@ include: "workflow_rules/report.smk"
 
 
 rule all:
+    default_target: True
     input:
         result("summary.csv"),
         result("rigid_laws.png"),
@@ -32,7 +33,6 @@ rule all:
         expand(tip_result("W_A_vs_h.png"), tip=TIPS),
         expand(tip_result("adhesion_map.png"), tip=TIPS),
         [png for tip in TIPS for png in intervals_of(tip, "forces", "png")],
-    default_target: True
 
 
 # Who holds the lock: `python -m pipeline unlock-stale` (run by `make run`) removes the lock of a

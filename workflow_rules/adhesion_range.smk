@@ -7,7 +7,12 @@ rule adhesion_range:
         inversion=tip_result("inversion.h5"),
     output:
         h5=tip_result("adhesion_range.h5"),
-        csv=report(tip_result("{tip}_report.csv"), caption="report/tip_report.rst", category="4 Adhesion range", subcategory="{tip}"),
+        csv=report(
+            tip_result("{tip}_report.csv"),
+            caption="report/tip_report.rst",
+            category="4 Adhesion range",
+            subcategory="{tip}",
+        ),
     log:
         job_log("{tip}/adhesion_range"),
     benchmark:
@@ -25,8 +30,15 @@ rule adhesion_figures:
     input:
         tip_result("adhesion_range.h5"),
     output:
-        wa_h=report(tip_result("W_A_vs_h.png"), caption="report/w_of_h.rst", category="4 Adhesion range", subcategory="{tip}"),
-        amap=report(tip_result("adhesion_map.png"), caption="report/adhesion_map.rst", category="4 Adhesion range", subcategory="{tip}"),
+        wa_h=report(
+            tip_result("W_A_vs_h.png"), caption="report/w_of_h.rst", category="4 Adhesion range", subcategory="{tip}"
+        ),
+        amap=report(
+            tip_result("adhesion_map.png"),
+            caption="report/adhesion_map.rst",
+            category="4 Adhesion range",
+            subcategory="{tip}",
+        ),
     log:
         job_log("{tip}/adhesion_figures"),
     benchmark:

@@ -7,7 +7,9 @@ rule forces:
         calibration=lambda w: [str(p) for p in interval_cfg(w).get("calibration_paths", [])],
     output:
         h5=interval_result("forces", "h5"),
-        png=report(interval_result("forces", "png"), caption="report/forces.rst", category="3 Forces", subcategory="{tip}"),
+        png=report(
+            interval_result("forces", "png"), caption="report/forces.rst", category="3 Forces", subcategory="{tip}"
+        ),
     log:
         job_log("{tip}/forces/{interval}"),
     benchmark:

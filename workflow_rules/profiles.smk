@@ -6,7 +6,12 @@ rule profiles:
         image=lambda w: str(interval_cfg(w)["image_path"]),
     output:
         h5=interval_result("profiles", "h5"),
-        png=report(interval_result("profiles", "png"), caption="report/profiles.rst", category="1 Profiles", subcategory="{tip}"),
+        png=report(
+            interval_result("profiles", "png"),
+            caption="report/profiles.rst",
+            category="1 Profiles",
+            subcategory="{tip}",
+        ),
     log:
         job_log("{tip}/profiles/{interval}"),
     benchmark:
