@@ -177,33 +177,41 @@ def cmd_unlock_stale(a):
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True, metavar="<command>")
+    _add_job_commands(sub)
+    _add_tool_commands(sub)
+    return p
 
-    def stage(name, func, tip=True, interval=False):
-        s = sub.add_parser(name, help=COMMAND_HELP[name], description=COMMAND_HELP[name])
-        if tip:
-            s.add_argument("--tip-config", required=True, help="the tip's YAML (config/tips/<tip>.yaml)")
-        if interval:
-            s.add_argument("--interval", required=True, help="interval name as in the tip YAML")
-        s.set_defaults(func=func)
-        return s
 
-    s = stage("profiles", cmd_profiles, interval=True)
+def _command(sub, name, func, tip=True, interval=False):
+    """A subcommand (help from COMMAND_HELP) with --tip-config and --interval where it takes them."""
+    s = sub.add_parser(name, help=COMMAND_HELP[name], description=COMMAND_HELP[name])
+    if tip:
+        s.add_argument("--tip-config", required=True, help="the tip's YAML (config/tips/<tip>.yaml)")
+    if interval:
+        s.add_argument("--interval", required=True, help="interval name as in the tip YAML")
+    s.set_defaults(func=func)
+    return s
+
+
+def _add_job_commands(sub):
+    """The commands the workflow's jobs run (one per rule)."""
+    s = _command(sub, "profiles", cmd_profiles, interval=True)
     s.add_argument("--out-h5", required=True, help="profile HDF5 to write")
     s.add_argument("--out-png", required=True, help="figure: the image with the detected edge and axis")
 
-    s = stage("fit", cmd_fit, interval=True)
+    s = _command(sub, "fit", cmd_fit, interval=True)
     s.add_argument("--profile-h5", required=True, help="the interval's profile HDF5 (stage 1)")
     s.add_argument("--out-h5", required=True, help="fit HDF5 to write")
 
-    s = stage("fit-figure", cmd_fit_figure, tip=False)
+    s = _command(sub, "fit-figure", cmd_fit_figure, tip=False)
     s.add_argument("--out-png", required=True, help="figure to write")
     s.add_argument("fit_h5", nargs="+", help="fit HDF5 files (stage 2), one per interval")
 
-    s = stage("forces", cmd_forces, interval=True)
+    s = _command(sub, "forces", cmd_forces, interval=True)
     s.add_argument("--out-h5", required=True, help="forces HDF5 to write")
     s.add_argument("--out-png", required=True, help="figure: retract curves, baselines and pull-offs")
 
-    s = stage("inversion", cmd_inversion)
+    s = _command(sub, "inversion", cmd_inversion)
     s.add_argument("--workflow-config", default="config/config.yaml",
                    help="the workflow config whose h_grid, traction_laws, solver_mode and monte_carlo (samples, seed) "
                         "the inversion uses (default: config/config.yaml)")
@@ -211,40 +219,42 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--forces", required=True, help="folder of per-interval forces HDF5 files")
     s.add_argument("--out-h5", required=True, help="inversion HDF5 to write")
 
-    s = stage("adhesion-range", cmd_adhesion_range)
+    s = _command(sub, "adhesion-range", cmd_adhesion_range)
     s.add_argument("--inversion-h5", required=True, help="the tip's inversion HDF5 (stage 4)")
     s.add_argument("--out-h5", required=True, help="adhesion-range HDF5 to write")
     s.add_argument("--report-csv", required=True, help="per-interval CSV to write")
     s.add_argument("--fig-dir", help="also draw W_A_vs_h.png and adhesion_map.png here")
 
-    s = stage("adhesion-figures", cmd_adhesion_figures, tip=False)
+    s = _command(sub, "adhesion-figures", cmd_adhesion_figures, tip=False)
     s.add_argument("--tip", default="", help="tip name for the titles")
     s.add_argument("--range-h5", required=True, help="the tip's adhesion-range HDF5 (stage 5)")
     s.add_argument("--w-of-h-png", required=True, help="W_A(h) figure to write")
     s.add_argument("--adhesion-map-png", required=True, help="adhesion-map figure to write")
 
-    s = stage("summary", cmd_summary, tip=False)
+    s = _command(sub, "summary", cmd_summary, tip=False)
     s.add_argument("--out-csv", required=True, help="summary CSV to write")
     s.add_argument("range_h5", nargs="+", help="adhesion-range HDF5 files (stage 5), one per tip in <tip>/")
 
-    s = stage("rigid-laws-figure", cmd_rigid_laws_figure, tip=False)
+    s = _command(sub, "rigid-laws-figure", cmd_rigid_laws_figure, tip=False)
     s.add_argument("--out-png", required=True, help="figure to write")
 
-    s = stage("mechanics-figure", cmd_mechanics_figure, tip=False)
+
+def _add_tool_commands(sub):
+    """The commands run by hand (figures of the mechanics, checks, samples, the lock)."""
+    s = _command(sub, "mechanics-figure", cmd_mechanics_figure, tip=False)
     s.add_argument("--out", required=True, help="PNG: pull-off vs h for the four laws, elastic and rigid (paper Fig. 7)")
     s.add_argument("--n", default="2,5", help="comma-separated power indices (default 2,5)")
     s.add_argument("--fast", action="store_true", help="elastic values from the table instead of direct solves")
 
-    s = stage("validate", cmd_validate, tip=False)
+    s = _command(sub, "validate", cmd_validate, tip=False)
     s.add_argument("--workflow-config", default="config/config.yaml", help="default: config/config.yaml")
 
-    s = stage("make-samples", cmd_make_samples, tip=False)
+    s = _command(sub, "make-samples", cmd_make_samples, tip=False)
     s.add_argument("--out", default="data_samples", help="folder for the data (default: data_samples)")
     s.add_argument("--config-dir", default="config/tips", help="where to write the sample tips' YAMLs")
 
-    s = stage("unlock-stale", cmd_unlock_stale, tip=False)
+    s = _command(sub, "unlock-stale", cmd_unlock_stale, tip=False)
     s.add_argument("--directory", default=".", help="Snakemake's working directory (default: .)")
-    return p
 
 
 def main(argv=None) -> int:
