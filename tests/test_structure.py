@@ -119,6 +119,39 @@ def test_no_stage_imports_the_synthetic_data():
     assert cli and not any(top for t, top in graph["pipeline.cli"] if t.startswith("pipeline.synth"))
 
 
+# Functions longer than MAX_FUNCTION_LINES left for now: the TEM stage and the fits are being
+# rewritten (silhouette_fit split, fits/ package) and forces/pulloff.py is being changed; their
+# long functions go with those changes (then their entries here go).
+MAX_FUNCTION_LINES = 60
+LONG_FUNCTIONS_LEFT = ("pipeline/tem/", "pipeline/fits.py", "pipeline/forces/pulloff.py")
+
+
+def function_lengths():
+    """(lines without the docstring, file, name) of every function of the package."""
+    out = []
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                body = node.body
+                if len(body) > 1 and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+                    body = body[1:]
+                lines = node.end_lineno - body[0].lineno + 2  # the def line and the body
+                out.append((lines, path.relative_to(PACKAGE.parent).as_posix(), node.name))
+    return out
+
+
+def test_function_lengths_counted():
+    found = {(f, n): k for k, f, n in function_lengths()}
+    assert found[("pipeline/cli.py", "main")] == 11  # def, 9 body lines and a blank one inside
+    assert max(found.values()) > MAX_FUNCTION_LINES  # the TEM functions left for now
+
+
+def test_no_function_over_60_lines():
+    """The coordinating functions are split (complexity <= 15 is ruff's C901, run by make lint)."""
+    long = sorted((k, f, n) for k, f, n in function_lengths() if k > MAX_FUNCTION_LINES and not f.startswith(LONG_FUNCTIONS_LEFT))
+    assert not long, long
+
+
 @pytest.mark.parametrize("modules, not_loaded", [
     (["pipeline.cli"], ["matplotlib", "scipy", "h5py"]),
     (["pipeline.forces.stage"], ["matplotlib", "pipeline.mechanics"]),
