@@ -166,3 +166,17 @@ def test_a_stage_loads_only_what_it_uses(modules, not_loaded):
                           env={**os.environ, "PYTHONPATH": str(PACKAGE.parent)})
     assert proc.returncode == 0, proc.stderr[-1500:]
     assert proc.stdout.strip() == "[]"
+
+
+def test_every_function_of_the_readme_equation_index_exists():
+    """The README's equation index names functions that exist (a rename must update it)."""
+    import importlib
+    import re
+
+    readme = (PACKAGE.parent / "README.md").read_text()
+    index = readme.split("**Equation index**", 1)[1].split("\n\n", 2)[1]
+    names = re.findall(r"`(pipeline(?:\.\w+)+)`", index)
+    assert len(names) >= 15
+    for dotted in names:
+        module, _, attr = dotted.rpartition(".")
+        assert callable(getattr(importlib.import_module(module), attr)), dotted
