@@ -155,9 +155,9 @@ def test_crossing_interpolation_exact_for_power_laws():
 def test_censored_percentiles():
     v = np.array([1.0, 2.0, 3.0, np.nan, np.nan])
     side = np.array([0, 0, 0, -1, 1])
-    p = censored_percentiles(v, side, (2.5, 50, 97.5), 0, 10)
+    p = censored_percentiles(v, side, (2.5, 50, 97.5))
     assert np.isnan(p[0]) and p[1] == 2.0 and np.isnan(p[2])
-    p = censored_percentiles(np.arange(100.0), np.zeros(100), (2.5, 97.5), 0, 100)
+    p = censored_percentiles(np.arange(100.0), np.zeros(100), (2.5, 97.5))
     assert p[0] == 2.0 and p[1] == 97.0
 
 

@@ -92,7 +92,7 @@ def interval_crossing(d: dict, yc, ys, ref_c, ref_s, h) -> dict:
     root_s, side_s = sample_crossings(x, ys - ref_s, target)
     info["crossing_fraction"] = float(np.mean(np.isfinite(root_s)))
     info["h_samples"] = np.exp(root_s)
-    info["h_pcts"] = np.exp(censored_percentiles(root_s, side_s, CI_PCTS, x[0], x[-1]))
+    info["h_pcts"] = np.exp(censored_percentiles(root_s, side_s, CI_PCTS))
     if len(roots) > 1:
         info["status"] = "multiple_crossings"
         info["note"] = "W_A(h) meets the reference at h = " + ", ".join(f"{r * 1e9:.3g}" for r in np.exp(roots)) + " nm"

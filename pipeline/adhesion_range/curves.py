@@ -63,7 +63,7 @@ def first_finite(a):
     return np.where(fin.any(axis=1), v, np.inf)
 
 
-def censored_percentiles(values, side, pcts, lo_edge, hi_edge):
+def censored_percentiles(values, side, pcts):
     """Percentiles of per-sample estimates with censoring at the grid edges.
 
     Samples with no estimate inside the grid count as -inf (side -1) or +inf (+1);

@@ -54,8 +54,8 @@ def global_estimate(curves: LawCurves, order: list, intervals: dict, h, inconsis
     g["chi2_min"] = float(chis[0])
     g["edge_fraction"] = float(np.mean(edge_s != 0))
     xss_c = np.where(edge_s != 0, np.nan, xss)
-    g["h_pcts"] = np.exp(censored_percentiles(xss_c, edge_s, CI_PCTS, x[0], x[-1]))
-    g["W_pcts"] = np.exp(censored_percentiles(mss, np.zeros_like(edge_s), CI_PCTS, -np.inf, np.inf))
+    g["h_pcts"] = np.exp(censored_percentiles(xss_c, edge_s, CI_PCTS))
+    g["W_pcts"] = np.exp(censored_percentiles(mss, np.zeros_like(edge_s), CI_PCTS))
     if edge[0] != 0 or not np.isfinite(xs[0]):
         g["status"] = "at_grid_edge"
         g["note"] += f"chi2(h) is smallest at the {'lower' if edge[0] < 0 else 'upper'} end of the h grid: no estimate"

@@ -52,12 +52,12 @@ def _verdict(g: dict) -> str:
     return f"intervals {verdict} (chi2 = {g['chi2_min']:.3g} for {g['dof']} dof, p = {g['p_value']:.2g})"
 
 
-def _percentiles(g: dict, xs, ms, side, x) -> None:
+def _percentiles(g: dict, xs, ms, side) -> None:
     """The global estimate's percentiles from per-sample ln h (``xs``, NaN where censored on
     ``side``) and ln W (``ms``); the previous ones kept as ``*_pcts_unscaled``."""
     g["h_pcts_unscaled"], g["W_pcts_unscaled"] = g["h_pcts"], g["W_pcts"]
-    g["h_pcts"] = np.exp(censored_percentiles(xs, side, CI_PCTS, x[0], x[-1]))
-    g["W_pcts"] = np.exp(censored_percentiles(ms, np.zeros_like(side), CI_PCTS, -np.inf, np.inf))
+    g["h_pcts"] = np.exp(censored_percentiles(xs, side, CI_PCTS))
+    g["W_pcts"] = np.exp(censored_percentiles(ms, np.zeros_like(side), CI_PCTS))
 
 
 def random_effects_if_inconsistent(g, x, Yc, Ys, C):
@@ -95,7 +95,7 @@ def random_effects_if_inconsistent(g, x, Yc, Ys, C):
     if edge == 0 and np.isfinite(xs):
         g["h"], g["W_A"] = float(np.exp(xs)), float(np.exp(ms))
     g["h_samples"], g["W_samples"] = np.exp(xss), np.exp(mss)
-    _percentiles(g, np.where(edge_s != 0, np.nan, xss), mss, edge_s, x)
+    _percentiles(g, np.where(edge_s != 0, np.nan, xss), mss, edge_s)
 
     def widening(p, p0):
         return float(np.log(p[-1] / p[0]) / np.log(p0[-1] / p0[0]))
@@ -134,5 +134,5 @@ def widen_if_inconsistent(g, x0, m0, xss, mss, edge_s, x):
     # a widened sample beyond the grid is open (censored) on that side
     side = np.where(np.isfinite(xw) & (xw < x[0]), -1, np.where(np.isfinite(xw) & (xw > x[-1]), 1, edge_s))
     xw = np.where((xw < x[0]) | (xw > x[-1]), np.nan, xw)
-    _percentiles(g, xw, mw, side, x)
+    _percentiles(g, xw, mw, side)
     g["note"] += f"{_verdict(g)}: the confidence intervals of h and W_A are widened by the Birge ratio sqrt(chi2/dof) = {B:.2f}. "

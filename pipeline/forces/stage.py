@@ -60,7 +60,7 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
     F_p, u_F_stat = cal.k * col["delta_m"], cal.k * col["u_delta_m"]
     st = interval_stats(F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"], u=u_F_stat)
     used = accepted & ~st.outlier
-    _log_decisions(label, rows, cal, inv, st, used, col)
+    _log_decisions(label, rows, cal, inv, st, col)
     res = IntervalForces(
         tip=tip, interval=interval, reader=reader, cantilever=cant, warnings=warnings, files=[r["file"] for r in rows],
         reasons=[r["reason"] for r in rows], accepted=accepted, used=used, columns=col, F_p=F_p, u_F_p_stat=u_F_stat,
@@ -133,7 +133,7 @@ def _pulloff_columns(rows) -> dict:
     return col
 
 
-def _log_decisions(label, rows, cal, inv, st, used, col) -> None:
+def _log_decisions(label, rows, cal, inv, st, col) -> None:
     """The stage's decisions in plain lines (the log is the lab notebook)."""
     log.info("%s: k = %.4g N/m +- %.2g %% (%s); InvOLS = %.4g nm/V +- %.2g %% (%s)", label, cal.k, 100 * cal.u_k_rel,
              cal.k_source, inv.value * 1e9, 100 * inv.u / inv.value if inv.value else float("nan"), inv.source)

@@ -220,7 +220,7 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
         noisy = img * bg + rng.normal(0.0, sigma_noise, img.shape)
 
     if scale_bar:
-        _draw_scale_bar(noisy, px, orientation, maxval)
+        _draw_scale_bar(noisy, px, orientation)
     if np.issubdtype(dtype, np.integer):
         out = np.clip(np.rint(noisy), 0, maxval).astype(dtype)
     else:
@@ -251,7 +251,7 @@ def _nice_length(target):
     return 10**exp
 
 
-def _draw_scale_bar(img, px, orientation, maxval):
+def _draw_scale_bar(img, px, orientation):
     """Dark bar + label in the lower-left (apex side) corner, drawn in place."""
     H, W = img.shape
     length = _nice_length(0.2 * W * px)

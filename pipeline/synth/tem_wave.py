@@ -259,7 +259,7 @@ def _sampling(p):
     return m, dx, pad
 
 
-def _exit_wave_rows(body, particles, p, m, dx, pad, rows, ncols, pot, lam_abs, sigma):
+def _exit_wave_rows(body, particles, p, m, pad, rows, ncols, pot, lam_abs, sigma):
     """Exit wave on grid rows ``rows`` (all ``ncols`` columns) and the material masks there."""
     gr = (rows[:, None] - pad + 0.5) / m - 0.5  # detector row coordinate of each grid point
     gc = (np.arange(ncols)[None, :] - pad + 0.5) / m - 0.5
@@ -304,7 +304,7 @@ def exit_wave(p: TemWaveParams, body=None, particles=None, pad=None):
     masks = {}
     for r0 in range(0, n_r, 256):
         rows = np.arange(r0, min(n_r, r0 + 256), dtype=float)
-        w, mk = _exit_wave_rows(body, particles, p, m, dx, pad, rows, n_c, pot, lam_abs, sigma)
+        w, mk = _exit_wave_rows(body, particles, p, m, pad, rows, n_c, pot, lam_abs, sigma)
         psi[r0:r0 + len(rows)] = w
         for k, v in mk.items():
             masks.setdefault(k, np.zeros((n_r, n_c), bool))[r0:r0 + len(rows)] = v
