@@ -47,13 +47,7 @@ def run_inversion(
     t0 = time.perf_counter()
     laws, h, n_samples = _checked_arguments(laws, solver_mode, h_grid, mc_samples)
     mc_idx = mc_grid_index(h.size, mc_h_points)
-    names = [str(iv["name"]) for iv in intervals]
-    for nm in names:
-        if nm not in fit_h5s or nm not in forces_h5s:
-            raise KeyError(f"interval {nm!r} has no fit or forces file")
-    fits = {nm: load_fit(fit_h5s[nm]) for nm in names}
-    forces = {nm: load_forces(forces_h5s[nm]) for nm in names}
-
+    names, fits, forces = _load_inputs(fit_h5s, forces_h5s, intervals)
     cal, cal_notes = tip_calibration(forces, names)
     fp_notes = implausible_forces({nm: forces[nm]["F_p_mean"] for nm in names})
     for note in cal_notes + fp_notes:
@@ -81,6 +75,18 @@ def run_inversion(
     write_inversion_h5(out_h5, settings=settings, h=h, mc_idx=mc_idx, cal=cal, cal_notes=cal_notes, systematic=sysd,
                        intervals=intervals, fits=fits, forces=forces, results=results)
     return {"seconds": time.perf_counter() - t0, "intervals": names, "laws": laws}
+
+
+def _load_inputs(fit_h5s: dict, forces_h5s: dict, intervals: list):
+    """(interval names, their stage-2 fits, their stage-3 forces), or a KeyError naming an interval
+    without either file."""
+    names = [str(iv["name"]) for iv in intervals]
+    for nm in names:
+        if nm not in fit_h5s or nm not in forces_h5s:
+            raise KeyError(f"interval {nm!r} has no fit or forces file")
+    fits = {nm: load_fit(fit_h5s[nm]) for nm in names}
+    forces = {nm: load_forces(forces_h5s[nm]) for nm in names}
+    return names, fits, forces
 
 
 def _checked_arguments(laws, solver_mode, h_grid, mc_samples):
