@@ -35,7 +35,9 @@ run: $(BIN)/.installed          ## run the whole pipeline on data_samples/ -> re
 ALT_ARITHMETIC := OPENBLAS_CORETYPE=Prescott NPY_DISABLE_CPU_FEATURES=X86_V3,X86_V4,AVX512_ICL,AVX512_SPR
 TEM_TESTS := tests/test_tem_silhouette_fit.py tests/test_tem_profiles.py tests/test_fits.py
 
-test: $(BIN)/.installed         ## the default (fast) test suite, then the TEM tests on a second arithmetic path
+# The style checks first (seconds): a test run is not started on code the tools refuse.
+test: $(BIN)/.installed         ## the style checks (make lint), the default (fast) test suite, then the TEM tests on a second arithmetic path
+	$(MAKE) --no-print-directory lint
 	$(BIN)/pytest
 	$(ALT_ARITHMETIC) $(BIN)/pytest $(TEM_TESTS)
 
@@ -91,7 +93,10 @@ elastic-table: $(BIN)/.installed  ## rebuild pipeline/mechanics/data/elastic_pul
 report: $(BIN)/.installed       ## HTML report of a finished run (all figures and CSVs)
 	$(BIN)/snakemake --report results/report.html
 
-lint: $(BIN)/.installed
+# ruff ([tool.ruff] in pyproject.toml), snakefmt ([tool.snakefmt]) and Snakemake's own linter.
+lint: $(BIN)/.installed         ## the style checks: ruff check, snakefmt --check, snakemake --lint
+	$(BIN)/ruff check .
+	$(BIN)/snakefmt --check Snakefile workflow_rules
 	$(BIN)/snakemake --lint
 
 clean:

@@ -24,15 +24,15 @@ include: "workflow_rules/report.smk"
 
 
 rule all:
-    input:
-        f"{RESULTS}/summary.csv",
-        f"{RESULTS}/rigid_laws.png",
-        expand(f"{RESULTS}/{{tip}}/{{tip}}_report.csv", tip=TIPS),
-        expand(f"{RESULTS}/{{tip}}/fits.png", tip=TIPS),
-        expand(f"{RESULTS}/{{tip}}/W_A_vs_h.png", tip=TIPS),
-        expand(f"{RESULTS}/{{tip}}/adhesion_map.png", tip=TIPS),
-        [f"{RESULTS}/{t}/forces/{iv}.png" for t in TIPS for iv in INTERVALS[t]],
     default_target: True
+    input:
+        result("summary.csv"),
+        result("rigid_laws.png"),
+        expand(tip_result("{tip}_report.csv"), tip=TIPS),
+        expand(tip_result("fits.png"), tip=TIPS),
+        expand(tip_result("W_A_vs_h.png"), tip=TIPS),
+        expand(tip_result("adhesion_map.png"), tip=TIPS),
+        [png for tip in TIPS for png in intervals_of(tip, "forces", "png")],
 
 
 # Who holds the lock: `python -m pipeline unlock-stale` (run by `make run`) removes the lock of a

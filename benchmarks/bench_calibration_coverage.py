@@ -40,7 +40,7 @@ def main(n_seeds=40, generator="instrument", kinds=KINDS):
             f"{'max|dF|':>8s} {'cov h':>6s} {'cov W':>6s} {'widened':>8s} {'med hw':>7s} {'L/Lb>1':>6s} {'s/case':>7s}")
     print(head)
     for kind in kinds:
-        for model, pre in (("random effects", ""), ("Birge", "birge_")):
+        for _model, pre in (("random effects", ""), ("Birge", "birge_")):
             r = [x for x in rows[kind] if x[pre + "status"] == "ok"]
             if not r:
                 continue

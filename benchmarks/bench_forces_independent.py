@@ -55,8 +55,8 @@ def scenarios():
 
 
 def run_scenario(name, spec, seeds, workdir):
+    from pipeline.forces.io import load_forces
     from pipeline.forces.stage import run_forces
-    from pipeline.inversion import load_forces
 
     it_kw, lv_kw, in_kw = spec
     rows = []

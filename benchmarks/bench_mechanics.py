@@ -111,7 +111,7 @@ def main(argv=None):
     err_fast = np.max(np.abs(M.pulloff_nd(n_ref, l_ref) / ref - 1))
     sub = slice(0, 4000)
     err_fast_dense = np.max(np.abs(M.pulloff_nd(nn6[sub], ll6[sub]) / pulloff_mdn_exact(nn6[sub], ll6[sub]) - 1))
-    rows.append(("M-D-n fast (quintic table)", t_fast, max(err_fast, err_fast_dense), f"mpmath + 4000 exact pts"))
+    rows.append(("M-D-n fast (quintic table)", t_fast, max(err_fast, err_fast_dense), "mpmath + 4000 exact pts"))
     t_auto = timeit(lambda: M.pulloff_nd(nn6, ll6, model="auto")) / N
     rows.append(("auto (rigid | M-D-n fast)", t_auto, np.nan, "model switch"))
     # rigid closed forms

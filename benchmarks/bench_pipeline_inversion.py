@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.adhesion_range import run_adhesion_range
-from pipeline.inversion import run_inversion, write_synthetic_inputs
+from pipeline.adhesion_range.stage import run_adhesion_range
+from pipeline.inversion.stage import run_inversion
+from pipeline.synth.stage_inputs import write_synthetic_inputs
 
 CASES = {
     "paper-like tip A (W=46.7 mJ/m2, h=4.6 nm, E*=165 GPa, R=30 nm, n=2..6)":

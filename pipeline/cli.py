@@ -4,7 +4,7 @@
     python -m pipeline fit       --tip-config ... --interval ... --profile-h5 ... --out-h5 ...
     python -m pipeline fit-figure --out-png ... FIT_H5...
     python -m pipeline forces    --tip-config ... --interval ... --out-h5 ... --out-png ...
-    python -m pipeline inversion --tip-config ... --fits DIR --forces DIR --out-h5 ... --h-min M --h-max M --h-points N --laws dugdale,lj --solver-mode auto --mc-samples N --seed N
+    python -m pipeline inversion --tip-config ... [--workflow-config config/config.yaml] --fits DIR --forces DIR --out-h5 ...
     python -m pipeline adhesion-range --tip-config ... --inversion-h5 ... --out-h5 ... --report-csv ...
     python -m pipeline adhesion-figures --tip NAME --range-h5 ... --w-of-h-png ... --adhesion-map-png ...
     python -m pipeline summary   --out-csv results/summary.csv RANGE_H5...
@@ -21,7 +21,6 @@ status 1.  `python -m pipeline <command> --help` lists a command's options.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -77,26 +76,23 @@ def cmd_forces(a):
 
 
 def cmd_inversion(a):
-    import numpy as np
-
-    from pipeline.config import load_tip_config
-    from pipeline.inversion import run_inversion
+    from pipeline.config import inversion_settings, load_tip_config, load_workflow_config
+    from pipeline.inversion.stage import run_inversion
 
     tip = load_tip_config(a.tip_config)
+    settings = inversion_settings(load_workflow_config(a.workflow_config))  # h grid, laws, solver mode, Monte Carlo
     names = [iv["name"] for iv in tip["intervals"]]
     run_inversion(
         {n: str(Path(a.fits) / f"{n}.h5") for n in names},
         {n: str(Path(a.forces) / f"{n}.h5") for n in names},
         a.out_h5,
         intervals=[{"name": iv["name"], "scans": iv["scans"], "reference": iv["reference"]} for iv in tip["intervals"]],
-        E_star=tip["materials"]["E_star"], u_E_star=tip["materials"]["u_E_star"],
-        h_grid=np.geomspace(a.h_min, a.h_max, a.h_points) if a.h_spacing == "log" else np.linspace(a.h_min, a.h_max, a.h_points),
-        laws=a.laws.split(","), solver_mode=a.solver_mode, mc_samples=a.mc_samples, seed=a.seed, tip=tip["name"],
+        E_star=tip["materials"]["E_star"], u_E_star=tip["materials"]["u_E_star"], tip=tip["name"], **settings,
     )
 
 
 def cmd_adhesion_range(a):
-    from pipeline.adhesion_range import run_adhesion_range
+    from pipeline.adhesion_range.stage import run_adhesion_range
     from pipeline.config import load_tip_config
 
     tip = load_tip_config(a.tip_config)
@@ -104,26 +100,26 @@ def cmd_adhesion_range(a):
 
 
 def cmd_adhesion_figures(a):
-    from pipeline.figures_adhesion import plot_adhesion_map, plot_w_of_h
+    from pipeline.adhesion_range.figures import plot_adhesion_map, plot_w_of_h
 
     plot_w_of_h(a.range_h5, a.w_of_h_png, tip=a.tip)
     plot_adhesion_map(a.range_h5, a.adhesion_map_png, tip=a.tip)
 
 
 def cmd_summary(a):
-    from pipeline.reports import write_summary
+    from pipeline.adhesion_range.report import write_summary
 
     write_summary({Path(p).parent.name: p for p in a.range_h5}, a.out_csv)
 
 
 def cmd_rigid_laws_figure(a):
-    from pipeline.figures_adhesion import plot_rigid_laws
+    from pipeline.mechanics.figures import plot_rigid_laws
 
     plot_rigid_laws(a.out_png)
 
 
 def cmd_mechanics_figure(a):
-    from pipeline.figures_mechanics import plot_fig7
+    from pipeline.mechanics.figures import plot_fig7
 
     ns = tuple(float(v) for v in a.n.split(","))
     if not 1 <= len(ns) <= 4:
@@ -135,7 +131,7 @@ def cmd_validate(a):
     from pipeline.config import discover_tips, load_tip_config, load_workflow_config
 
     wf = load_workflow_config(a.workflow_config)
-    for name, path in discover_tips(wf).items():
+    for path in discover_tips(wf).values():
         tip = load_tip_config(path)
         print(f"{path}: ok ({len(tip['intervals'])} intervals, E* = {tip['materials']['E_star'] / 1e9:.4g} GPa)")
 
@@ -181,79 +177,84 @@ def cmd_unlock_stale(a):
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True, metavar="<command>")
+    _add_job_commands(sub)
+    _add_tool_commands(sub)
+    return p
 
-    def stage(name, func, tip=True, interval=False):
-        s = sub.add_parser(name, help=COMMAND_HELP[name], description=COMMAND_HELP[name])
-        if tip:
-            s.add_argument("--tip-config", required=True, help="the tip's YAML (config/tips/<tip>.yaml)")
-        if interval:
-            s.add_argument("--interval", required=True, help="interval name as in the tip YAML")
-        s.set_defaults(func=func)
-        return s
 
-    s = stage("profiles", cmd_profiles, interval=True)
+def _command(sub, name, func, tip=True, interval=False):
+    """A subcommand (help from COMMAND_HELP) with --tip-config and --interval where it takes them."""
+    s = sub.add_parser(name, help=COMMAND_HELP[name], description=COMMAND_HELP[name])
+    if tip:
+        s.add_argument("--tip-config", required=True, help="the tip's YAML (config/tips/<tip>.yaml)")
+    if interval:
+        s.add_argument("--interval", required=True, help="interval name as in the tip YAML")
+    s.set_defaults(func=func)
+    return s
+
+
+def _add_job_commands(sub):
+    """The commands the workflow's jobs run (one per rule)."""
+    s = _command(sub, "profiles", cmd_profiles, interval=True)
     s.add_argument("--out-h5", required=True, help="profile HDF5 to write")
     s.add_argument("--out-png", required=True, help="figure: the image with the detected edge and axis")
 
-    s = stage("fit", cmd_fit, interval=True)
+    s = _command(sub, "fit", cmd_fit, interval=True)
     s.add_argument("--profile-h5", required=True, help="the interval's profile HDF5 (stage 1)")
     s.add_argument("--out-h5", required=True, help="fit HDF5 to write")
 
-    s = stage("fit-figure", cmd_fit_figure, tip=False)
+    s = _command(sub, "fit-figure", cmd_fit_figure, tip=False)
     s.add_argument("--out-png", required=True, help="figure to write")
     s.add_argument("fit_h5", nargs="+", help="fit HDF5 files (stage 2), one per interval")
 
-    s = stage("forces", cmd_forces, interval=True)
+    s = _command(sub, "forces", cmd_forces, interval=True)
     s.add_argument("--out-h5", required=True, help="forces HDF5 to write")
     s.add_argument("--out-png", required=True, help="figure: retract curves, baselines and pull-offs")
 
-    s = stage("inversion", cmd_inversion)
+    s = _command(sub, "inversion", cmd_inversion)
+    s.add_argument("--workflow-config", default="config/config.yaml",
+                   help="the workflow config whose h_grid, traction_laws, solver_mode and monte_carlo (samples, seed) "
+                        "the inversion uses (default: config/config.yaml)")
     s.add_argument("--fits", required=True, help="folder of per-interval fit HDF5 files")
     s.add_argument("--forces", required=True, help="folder of per-interval forces HDF5 files")
     s.add_argument("--out-h5", required=True, help="inversion HDF5 to write")
-    s.add_argument("--h-min", type=float, required=True, help="smallest adhesion range h of the grid, m")
-    s.add_argument("--h-max", type=float, required=True, help="largest adhesion range h of the grid, m")
-    s.add_argument("--h-points", type=int, required=True, help="number of h grid points")
-    s.add_argument("--h-spacing", choices=["log", "linear"], default="log", help="h grid spacing (default: log)")
-    s.add_argument("--laws", required=True, help="comma-separated traction laws (dugdale, lj, tri1, tri2)")
-    s.add_argument("--solver-mode", choices=["auto", "mdn", "rigid"], required=True, help="Dugdale-law solver")
-    s.add_argument("--mc-samples", type=int, required=True, help="Monte Carlo samples")
-    s.add_argument("--seed", type=int, required=True, help="Monte Carlo random seed")
 
-    s = stage("adhesion-range", cmd_adhesion_range)
+    s = _command(sub, "adhesion-range", cmd_adhesion_range)
     s.add_argument("--inversion-h5", required=True, help="the tip's inversion HDF5 (stage 4)")
     s.add_argument("--out-h5", required=True, help="adhesion-range HDF5 to write")
     s.add_argument("--report-csv", required=True, help="per-interval CSV to write")
     s.add_argument("--fig-dir", help="also draw W_A_vs_h.png and adhesion_map.png here")
 
-    s = stage("adhesion-figures", cmd_adhesion_figures, tip=False)
+    s = _command(sub, "adhesion-figures", cmd_adhesion_figures, tip=False)
     s.add_argument("--tip", default="", help="tip name for the titles")
     s.add_argument("--range-h5", required=True, help="the tip's adhesion-range HDF5 (stage 5)")
     s.add_argument("--w-of-h-png", required=True, help="W_A(h) figure to write")
     s.add_argument("--adhesion-map-png", required=True, help="adhesion-map figure to write")
 
-    s = stage("summary", cmd_summary, tip=False)
+    s = _command(sub, "summary", cmd_summary, tip=False)
     s.add_argument("--out-csv", required=True, help="summary CSV to write")
     s.add_argument("range_h5", nargs="+", help="adhesion-range HDF5 files (stage 5), one per tip in <tip>/")
 
-    s = stage("rigid-laws-figure", cmd_rigid_laws_figure, tip=False)
+    s = _command(sub, "rigid-laws-figure", cmd_rigid_laws_figure, tip=False)
     s.add_argument("--out-png", required=True, help="figure to write")
 
-    s = stage("mechanics-figure", cmd_mechanics_figure, tip=False)
+
+def _add_tool_commands(sub):
+    """The commands run by hand (figures of the mechanics, checks, samples, the lock)."""
+    s = _command(sub, "mechanics-figure", cmd_mechanics_figure, tip=False)
     s.add_argument("--out", required=True, help="PNG: pull-off vs h for the four laws, elastic and rigid (paper Fig. 7)")
     s.add_argument("--n", default="2,5", help="comma-separated power indices (default 2,5)")
     s.add_argument("--fast", action="store_true", help="elastic values from the table instead of direct solves")
 
-    s = stage("validate", cmd_validate, tip=False)
+    s = _command(sub, "validate", cmd_validate, tip=False)
     s.add_argument("--workflow-config", default="config/config.yaml", help="default: config/config.yaml")
 
-    s = stage("make-samples", cmd_make_samples, tip=False)
+    s = _command(sub, "make-samples", cmd_make_samples, tip=False)
     s.add_argument("--out", default="data_samples", help="folder for the data (default: data_samples)")
     s.add_argument("--config-dir", default="config/tips", help="where to write the sample tips' YAMLs")
 
-    s = stage("unlock-stale", cmd_unlock_stale, tip=False)
+    s = _command(sub, "unlock-stale", cmd_unlock_stale, tip=False)
     s.add_argument("--directory", default=".", help="Snakemake's working directory (default: .)")
-    return p
 
 
 def main(argv=None) -> int:

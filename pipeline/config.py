@@ -206,6 +206,17 @@ def h_grid(cfg: dict) -> np.ndarray:
     return np.linspace(g["min"], g["max"], g["points"])
 
 
+# The workflow settings stage 4 (the inversion) reads; Snakemake reruns it when they change.
+INVERSION_KEYS = ("h_grid", "traction_laws", "solver_mode", "monte_carlo")
+
+
+def inversion_settings(cfg: dict) -> dict:
+    """``run_inversion``'s keyword arguments from a validated workflow config: the h grid (m), the
+    traction laws, the solver mode, the Monte Carlo size and its seed."""
+    return {"h_grid": h_grid(cfg), "laws": list(cfg["traction_laws"]), "solver_mode": cfg["solver_mode"],
+            "mc_samples": cfg["monte_carlo"]["samples"], "seed": cfg["monte_carlo"]["seed"]}
+
+
 # --------------------------------------------------------------------------- tips
 
 
@@ -244,7 +255,18 @@ def load_tip_config(path, check_files: bool = True) -> dict:
     if check_files and not data_dir.is_dir():
         raise ConfigError(f"{path}: data_dir: folder {str(data_dir)!r} does not exist")
 
-    mat = tip["materials"]
+    _resolve_materials(tip["materials"], path)
+    _check_intervals(tip, path)
+    for i, iv in enumerate(tip["intervals"]):
+        _resolve_interval(iv, i, tip, data_dir, path, check_files)
+
+    tip.setdefault("cantilever", {})["base_dir"] = str(data_dir)
+    tip.setdefault("force_curves", {})["base_dir"] = str(data_dir)
+    return tip
+
+
+def _resolve_materials(mat: dict, path) -> None:
+    """E* (Eq. 7 from the two materials unless given) and its uncertainty, checked."""
     if "E_star" not in mat:
         mat["E_star"] = reduced_modulus(mat["tip"]["E"], mat["tip"]["nu"], mat["sample"]["E"], mat["sample"]["nu"])
     mat.setdefault("E_star_uncertainty", 0.0)
@@ -255,6 +277,9 @@ def load_tip_config(path, check_files: bool = True) -> dict:
         raise ConfigError(f"{path}: materials.E_star_uncertainty ({mat['u_E_star'] * 1e-9:.3g} GPa) is not smaller than "
                           f"E* ({mat['E_star'] * 1e-9:.3g} GPa)")
 
+
+def _check_intervals(tip: dict, path) -> None:
+    """Interval names unique; reference intervals among them, and at least one worn interval."""
     names = [iv["name"] for iv in tip["intervals"]]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
@@ -265,30 +290,28 @@ def load_tip_config(path, check_files: bool = True) -> dict:
     if len(set(tip["reference_intervals"])) == len(names):
         raise ConfigError(f"{path}: reference_intervals: every interval is a reference; at least one worn interval is needed to find h")
 
-    for i, iv in enumerate(tip["intervals"]):
-        iv["reference"] = iv["name"] in tip["reference_intervals"]
-        iv["image_path"] = data_dir / iv["image"]
-        iv["curve_paths"] = list_curve_files(iv["curves"], data_dir) if data_dir.is_dir() else []
-        if check_files:
-            if not iv["image_path"].is_file():
-                raise ConfigError(f"{path}: intervals[{i}].image: {str(iv['image_path'])!r} does not exist")
-            if not iv["curve_paths"]:
-                raise ConfigError(
-                    f"{path}: intervals[{i}].curves: no force-curve files found at {str(data_dir / iv['curves'])!r} "
-                    f"(expected a folder or glob of {', '.join(CURVE_SUFFIXES)})"
-                )
-        if "calibration_curves" in iv:
-            iv["calibration_paths"] = list_curve_files(iv["calibration_curves"], data_dir) if data_dir.is_dir() else []
-            if check_files and not iv["calibration_paths"]:
-                raise ConfigError(f"{path}: intervals[{i}].calibration_curves: no force-curve files found at "
-                                  f"{str(data_dir / iv['calibration_curves'])!r}")
-        if iv.get("deflection_sensitivity_uncertainty") is not None and "deflection_sensitivity" not in iv:
-            raise ConfigError(f"{path}: intervals[{i}].deflection_sensitivity_uncertainty is given without "
-                              "deflection_sensitivity")
 
-    tip.setdefault("cantilever", {})["base_dir"] = str(data_dir)
-    tip.setdefault("force_curves", {})["base_dir"] = str(data_dir)
-    return tip
+def _resolve_interval(iv: dict, i: int, tip: dict, data_dir: Path, path, check_files: bool) -> None:
+    """An interval's reference flag and its files (image, curves, calibration curves), checked."""
+    iv["reference"] = iv["name"] in tip["reference_intervals"]
+    iv["image_path"] = data_dir / iv["image"]
+    iv["curve_paths"] = list_curve_files(iv["curves"], data_dir) if data_dir.is_dir() else []
+    if check_files:
+        if not iv["image_path"].is_file():
+            raise ConfigError(f"{path}: intervals[{i}].image: {str(iv['image_path'])!r} does not exist")
+        if not iv["curve_paths"]:
+            raise ConfigError(
+                f"{path}: intervals[{i}].curves: no force-curve files found at {str(data_dir / iv['curves'])!r} "
+                f"(expected a folder or glob of {', '.join(CURVE_SUFFIXES)})"
+            )
+    if "calibration_curves" in iv:
+        iv["calibration_paths"] = list_curve_files(iv["calibration_curves"], data_dir) if data_dir.is_dir() else []
+        if check_files and not iv["calibration_paths"]:
+            raise ConfigError(f"{path}: intervals[{i}].calibration_curves: no force-curve files found at "
+                              f"{str(data_dir / iv['calibration_curves'])!r}")
+    if iv.get("deflection_sensitivity_uncertainty") is not None and "deflection_sensitivity" not in iv:
+        raise ConfigError(f"{path}: intervals[{i}].deflection_sensitivity_uncertainty is given without "
+                          "deflection_sensitivity")
 
 
 # quantities that must be positive (by key, wherever they stand in a tip YAML); every

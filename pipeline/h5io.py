@@ -155,3 +155,22 @@ def read_attr_json(obj, key: str):
         except ValueError:
             return value
     return value
+
+
+def require_group(f, name: str):
+    """The group ``name`` of an open file, or a KeyError naming the file and the group."""
+    if name in f:
+        return f[name]
+    raise KeyError(f"{f.file.filename}: no group {name!r}")
+
+
+def read_value(group, name: str, default=None, *, required: bool = False):
+    """A dataset's value (strings decoded) or else an attribute's; ``default`` when neither is
+    there, a KeyError naming file, group and key when ``required``."""
+    if name in group:
+        return read_dataset(group, name)[0]
+    if name in group.attrs:
+        return group.attrs[name]
+    if required:
+        raise KeyError(f"{group.file.filename}:{group.name}: missing {name!r}")
+    return default

@@ -22,6 +22,25 @@ def use_this_interpreter_for_jobs() -> str:
     return os.environ["PATH"]
 
 
+def config_file_for_jobs(configfiles, workflow_config: dict, keys) -> str:
+    """The workflow config file from which jobs read the settings ``keys`` themselves (the
+    inversion's h grid, laws, ...): the first of Snakemake's ``configfiles`` whose values of
+    ``keys`` (validated, SI) are those of the run, ``workflow_config``; relative to the working
+    directory where it lies in it, so that a run folder can be copied.  A ConfigError when none
+    is: the settings were given with ``--config`` or spread over several files, and a job would
+    compute with other values than the run tracks."""
+    from pipeline.config import ConfigError, load_workflow_config
+
+    want = {k: workflow_config[k] for k in keys}
+    for path in map(str, configfiles):
+        cfg = load_workflow_config(path)
+        if {k: cfg[k] for k in keys} == want:
+            rel = os.path.relpath(os.path.abspath(path))
+            return os.path.abspath(path) if rel.startswith(os.pardir) else rel
+    raise ConfigError(f"{', '.join(map(str, configfiles)) or 'no config file'}: {', '.join(keys)} must be set in one "
+                      "config file (not with --config, not spread over several --configfile): the jobs read them from it")
+
+
 # --- failed cluster jobs ------------------------------------------------------------------------
 # Snakemake reports a failed SLURM group job as "Error in group <name>" followed by every job of
 # the group, without the SLURM state (9.27 drops the executor's message for groups). The SLURM log
@@ -155,7 +174,7 @@ def write_partial_summary(summary_csv, range_h5s: dict, failed: dict) -> list[st
     The file is dated one second before the oldest of its inputs, so the next run of Snakemake
     takes it as out of date and writes it anew (a partial summary is never kept as final).
     Returns the console lines that say what was written."""
-    from pipeline.reports import write_summary
+    from pipeline.adhesion_range.report import write_summary
 
     write_summary(range_h5s, summary_csv, failed=failed)
     inputs = [os.path.getmtime(p) for p in range_h5s.values()]
@@ -306,7 +325,7 @@ def stale_lock(workdir=".") -> tuple[str, str]:
             continue
     state = [(path, rec, _alive(rec)) for path, rec in records]
     dead = [rec for path, rec, alive in state if alive is False]
-    for path, rec, alive in state:
+    for path, _rec, alive in state:
         if alive is False:
             path.unlink(missing_ok=True)
     if not locks:

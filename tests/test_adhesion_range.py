@@ -8,15 +8,15 @@ Pull-off forces of the generated tests come from the exact M-D-n solve
 import numpy as np
 import pytest
 
-from pipeline.adhesion_range import (
-    _crossings,
-    analyse_law,
-    censored_percentiles,
-    gls_chi2,
-    load_range,
-    run_adhesion_range,
-)
-from pipeline.inversion import load_inversion, run_inversion, write_synthetic_inputs
+from pipeline.adhesion_range.analysis import analyse_law
+from pipeline.adhesion_range.crossings import crossings
+from pipeline.adhesion_range.curves import censored_percentiles
+from pipeline.adhesion_range.gls import gls_chi2
+from pipeline.adhesion_range.io import load_range
+from pipeline.adhesion_range.stage import run_adhesion_range
+from pipeline.inversion.io import load_inversion
+from pipeline.inversion.stage import run_inversion
+from pipeline.synth.stage_inputs import write_synthetic_inputs
 
 NOISE = dict(sigma_n=0.01, sigma_lnR=0.005, rel_sd_curve=0.04, n_curves=64)
 
@@ -148,16 +148,16 @@ def test_multiple_crossings_listed():
 
 def test_crossing_interpolation_exact_for_power_laws():
     x = np.linspace(0, 1, 11)
-    assert _crossings(x, 0.3 - x) == [pytest.approx(0.3)]
-    assert _crossings(x, np.full(11, 1.0)) == []
+    assert crossings(x, 0.3 - x) == [pytest.approx(0.3)]
+    assert crossings(x, np.full(11, 1.0)) == []
 
 
 def test_censored_percentiles():
     v = np.array([1.0, 2.0, 3.0, np.nan, np.nan])
     side = np.array([0, 0, 0, -1, 1])
-    p = censored_percentiles(v, side, (2.5, 50, 97.5), 0, 10)
+    p = censored_percentiles(v, side, (2.5, 50, 97.5))
     assert np.isnan(p[0]) and p[1] == 2.0 and np.isnan(p[2])
-    p = censored_percentiles(np.arange(100.0), np.zeros(100), (2.5, 97.5), 0, 100)
+    p = censored_percentiles(np.arange(100.0), np.zeros(100), (2.5, 97.5))
     assert p[0] == 2.0 and p[1] == 97.0
 
 
@@ -250,7 +250,8 @@ def test_inconsistent_intervals_widen_the_interval_and_say_so(tmp_path):
     with chi2_min = dof once it is added (Paule-Mandel), drawn in the Monte Carlo, widens the
     CIs, and the note says by how much; Birge: the per-sample spread scales by sqrt(chi2/dof).
     The consistent tip is left as it is (tau 0, ratio 1, no note)."""
-    from pipeline.adhesion_range import _cov_inverse, _min_chi2, load_inversion
+    from pipeline.adhesion_range.gls import cov_inverse, min_chi2
+    from pipeline.inversion.io import load_inversion
     from pipeline.mechanics import pulloff_force
 
     c = dict(CASES["tipB_Si"])
@@ -267,12 +268,12 @@ def test_inconsistent_intervals_widen_the_interval_and_say_so(tmp_path):
     assert g["h_pcts"][0] < c["h"] < g["h_pcts"][-1]
     # tau is what brings chi2_min down to dof (checked by an independent re-evaluation)
     inv = load_inversion(tmp_path / "bad" / "inversion.h5")
-    from pipeline.adhesion_range import _ln
+    from pipeline.adhesion_range.curves import ln_positive
 
     names = g["intervals_used"]
-    Yc = np.stack([_ln(inv["intervals"][nm]["laws"]["dugdale"]["W_A"]) for nm in names], axis=-1)
-    Ys = np.stack([_ln(inv["intervals"][nm]["laws"]["dugdale"]["W_A_samples"]) for nm in names], axis=-1)
-    assert _min_chi2(np.log(inv["h"]), Yc, _cov_inverse(Ys, tau2=g["tau"] ** 2))[0] == pytest.approx(g["dof"], rel=0.01)
+    Yc = np.stack([ln_positive(inv["intervals"][nm]["laws"]["dugdale"]["W_A"]) for nm in names], axis=-1)
+    Ys = np.stack([ln_positive(inv["intervals"][nm]["laws"]["dugdale"]["W_A_samples"]) for nm in names], axis=-1)
+    assert min_chi2(np.log(inv["h"]), Yc, cov_inverse(Ys, tau2=g["tau"] ** 2))[0] == pytest.approx(g["dof"], rel=0.01)
     # the Birge alternative
     gb = analyse_law(inv, "dugdale", "birge")["global"]
     S = gb["birge_ratio"]
@@ -283,7 +284,7 @@ def test_inconsistent_intervals_widen_the_interval_and_say_so(tmp_path):
 
 
 def test_birge_ratio():
-    from pipeline.adhesion_range import birge_ratio
+    from pipeline.adhesion_range.inconsistency import birge_ratio
 
     assert birge_ratio(0.5, 3) == 1.0 and birge_ratio(12.0, 3) == 2.0 and birge_ratio(-1e-3, 2) == 1.0
     assert np.isnan(birge_ratio(4.0, 0))
@@ -292,7 +293,7 @@ def test_birge_ratio():
 def test_vectorised_covariances_equal_numpy_cov_per_h():
     """The per-h covariance over the samples finite at that h (one einsum) equals np.cov of those
     rows h by h, NaN patterns included; too few finite samples give NaN."""
-    from pipeline.adhesion_range import MIN_SAMPLES_FOR_COV, precision, sample_covariances
+    from pipeline.adhesion_range.gls import MIN_SAMPLES_FOR_COV, precision, sample_covariances
 
     rng = np.random.default_rng(5)
     Y = rng.normal(size=(300, 7, 3)) @ np.array([[1.0, 0.3, 0.1], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])

@@ -5,10 +5,13 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from pipeline import cli
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def subparsers():
@@ -40,8 +43,30 @@ def test_usage_in_the_help_matches_the_options():
         assert required <= named, f"{name}: required {required - named} missing from the help"
 
 
-def test_inversion_has_no_workflow_config_option():
-    assert "--workflow-config" not in subparsers()["inversion"].format_help()
+def test_inversion_reads_its_settings_from_the_workflow_config(tmp_path, monkeypatch):
+    """The h grid, the laws, the solver mode and the Monte Carlo come from the workflow config
+    (one place for Snakemake and a run by hand), not from options of their own."""
+    import numpy as np
+    import yaml
+
+    from pipeline.config import h_grid, load_workflow_config
+
+    options = {o for a in subparsers()["inversion"]._actions for o in a.option_strings}
+    assert "--workflow-config" in options
+    assert not options & {"--h-min", "--h-max", "--h-points", "--h-spacing", "--laws", "--solver-mode", "--mc-samples", "--seed"}
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(yaml.safe_dump({"tips_dir": "config/tips", "results_dir": str(tmp_path / "results"),
+                                   "h_grid": {"min": "0.3 nm", "max": "8 nm", "points": 7, "spacing": "linear"},
+                                   "traction_laws": ["tri1", "dugdale"], "solver_mode": "rigid",
+                                   "monte_carlo": {"samples": 123, "seed": 9}}))
+    called = {}
+    monkeypatch.setattr("pipeline.inversion.stage.run_inversion", lambda *args, **kw: called.update(kw))
+    monkeypatch.chdir(ROOT)
+    assert cli.main(["inversion", "--tip-config", "config/tips/tipA_DLC.yaml", "--workflow-config", str(cfg),
+                     "--fits", "f", "--forces", "p", "--out-h5", str(tmp_path / "inv.h5")]) == 0
+    np.testing.assert_array_equal(called["h_grid"], np.linspace(0.3e-9, 8e-9, 7))
+    np.testing.assert_array_equal(called["h_grid"], h_grid(load_workflow_config(str(cfg))))
+    assert (called["laws"], called["solver_mode"], called["mc_samples"], called["seed"]) == (["tri1", "dugdale"], "rigid", 123, 9)
 
 
 @pytest.mark.parametrize("name", ["forces", "inversion", "unlock-stale"])

@@ -7,10 +7,11 @@ import csv
 import numpy as np
 import pytest
 
-import pipeline.mechanics as M
-from pipeline.adhesion_range import run_adhesion_range
-from pipeline.inversion import load_inversion, run_inversion, write_synthetic_inputs
-from pipeline.reports import write_summary
+from pipeline.adhesion_range.report import write_summary
+from pipeline.adhesion_range.stage import run_adhesion_range
+from pipeline.inversion.io import load_inversion
+from pipeline.inversion.stage import run_inversion
+from pipeline.synth.stage_inputs import write_synthetic_inputs
 
 NM = 1e-9
 # soft pair, short range: Lambda 0.4-0.8 at the true h (Lambda_b = 0.15-0.26): rigid invalid

@@ -7,7 +7,6 @@ import pytest
 
 import pipeline.mechanics as M
 from pipeline.mechanics import elastic_tables as T
-from pipeline.mechanics.mdn import pulloff_mdn_exact
 
 NM = 1e-9
 LAWS = ("lj", "tri1", "tri2")

@@ -4,7 +4,13 @@ than the run."""
 import os
 import time
 
-from pipeline.workflow_support import MAX_REASON_LINES, FailedJob, explain_failed_jobs, failure_reason, tips_without_result
+from pipeline.workflow_support import (
+    MAX_REASON_LINES,
+    FailedJob,
+    explain_failed_jobs,
+    failure_reason,
+    tips_without_result,
+)
 
 
 def write_log(tmp_path, name, text, age=0.0):

@@ -110,7 +110,7 @@ def test_deflection_in_nm_read_as_volts_is_refused(tmp_path):
     import numpy as np
 
     from pipeline.forces.reading import read_curves
-    from pipeline.inversion import implausible_forces
+    from pipeline.inversion.calibration import implausible_forces
     from pipeline.synth.force_curves import make_force_curve, write_curve_csv
 
     c = make_force_curve(5e-9, 0.2, 50e-9, seed=2)

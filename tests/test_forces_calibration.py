@@ -6,8 +6,8 @@ from pipeline.forces.calibration import calibrate
 from pipeline.forces.curve import ForceCurve
 from pipeline.forces.errors import CalibrationError
 from pipeline.forces.invols import resolve_interval_invols
-from pipeline.forces.settings import CANTILEVER_DEFAULTS, with_defaults
 from pipeline.forces.reference_lever import reference_lever_k
+from pipeline.forces.settings import CANTILEVER_DEFAULTS, with_defaults
 from pipeline.forces.thermal import K_B, fit_sho, psd_from_series, thermal_k
 from pipeline.synth.force_curves import make_force_curve, thermal_noise_series, write_curve_csv, write_thermal_csv
 

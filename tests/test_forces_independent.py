@@ -80,7 +80,7 @@ def test_contact_compliance_corrects_the_contact_slope(k, n):
 
 
 def test_inversion_applies_the_compliance_only_to_contact_invols():
-    from pipeline.inversion import correct_contact_compliance
+    from pipeline.inversion.calibration import correct_contact_compliance
 
     fo = {"invols_method": "contact", "invols_shared": False, "k": 10.0, "contact_fit_deflection": np.array([4e-9, 16e-9]),
           "F_p_mean": 20e-9, "F_p_sem": 0.2e-9, "F_p_std": 0.6e-9, "F_p_curves": np.full(3, 20e-9), "invols": 60e-9,

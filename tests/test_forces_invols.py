@@ -152,7 +152,9 @@ def test_monte_carlo_draws_invols_per_interval_and_k_once(tmp_path):
     """Two intervals with their own InvOLS (u 5 %) and k (u 5 %): the calibration factors of the
     two intervals correlate through k only (rho = 0.05^2 / (0.05^2 + 0.05^2) = 0.5); a tip-level
     InvOLS is one draw for both (rho = 1)."""
-    from pipeline.inversion import load_inversion, run_inversion, write_synthetic_inputs
+    from pipeline.inversion.io import load_inversion
+    from pipeline.inversion.stage import run_inversion
+    from pipeline.synth.stage_inputs import write_synthetic_inputs
 
     ivs = [{"name": "a", "n": 2.0, "R": 20e-9, "reference": True}, {"name": "b", "n": 4.0, "R": 20e-9}]
     for shared, rho in ((False, 0.5), (True, 1.0)):

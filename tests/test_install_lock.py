@@ -80,6 +80,22 @@ def test_make_installs_from_the_lock_and_ci_runs_make_test():
     assert ci == ["make test"]
 
 
+def test_make_test_runs_the_style_checks_before_the_tests():
+    """CI's `make test` runs ruff, snakefmt --check and snakemake --lint (make lint) before pytest,
+    with the tools from the lock."""
+    makefile = (ROOT / "Makefile").read_text()
+
+    def recipe(target):
+        lines = makefile.split(f"\n{target}:", 1)[1].splitlines()[1:]
+        return [ln.strip() for ln in lines[: next(i for i, ln in enumerate(lines) if not ln.startswith("\t"))]]
+
+    test, lint = recipe("test"), recipe("lint")
+    assert test[0] == "$(MAKE) --no-print-directory lint" and test[1] == "$(BIN)/pytest"
+    assert lint == ["$(BIN)/ruff check .", "$(BIN)/snakefmt --check Snakefile workflow_rules", "$(BIN)/snakemake --lint"]
+    pins = pins_for_linux_311(MAIN)
+    assert "ruff" in pins and "snakefmt" in pins
+
+
 def test_drift_names_what_differs_from_the_lock(tmp_path):
     lock = tmp_path / "x.lock"
     lock.write_text("pytest==0.0.1 \\\n    --hash=sha256:" + "a" * 64 + "\n    # via x\n"

@@ -8,16 +8,12 @@ import numpy as np
 import pytest
 
 from pipeline import mechanics as mech
-from pipeline.inversion import (
-    clip_n,
-    interp_loglog,
-    load_fit,
-    load_forces,
-    load_inversion,
-    mc_grid_index,
-    run_inversion,
-    write_synthetic_inputs,
-)
+from pipeline.forces.io import load_forces
+from pipeline.inversion.hgrid import interp_loglog, mc_grid_index
+from pipeline.inversion.io import load_fit, load_inversion
+from pipeline.inversion.shape import clip_n
+from pipeline.inversion.stage import run_inversion
+from pipeline.synth.stage_inputs import write_synthetic_inputs
 
 H_GRID = np.geomspace(0.2e-9, 10e-9, 41)
 E_STAR = 120e9
@@ -235,7 +231,7 @@ def test_uncertain_reference_is_used_as_a_paraboloid(tmp_path):
     """The held-out failure: a reference fitted n = 1.70 +- 0.45 was clipped to 2 keeping the
     R of the free fit (12 % off), moving W_A by -12 %.  With the paraboloid fit of the same
     profile it is used as a paraboloid with that fit's R, and the notes say so in words."""
-    from pipeline.inversion import shape_for_inversion
+    from pipeline.inversion.shape import shape_for_inversion
 
     R = 30e-9
     fits, forces, cfg = write_synthetic_inputs(tmp_path, W_A=0.05, h=3e-9, E_star=E_STAR, intervals=_intervals([2, 4, 5]),
@@ -286,3 +282,10 @@ def test_paraboloid_fit_matches_linear_least_squares():
     assert fit.n == 2.0 and fit.cov_n_lnQ[0, 0] == 0.0
     assert fit.R == pytest.approx(1e-9 / (2.0 * c[0]), rel=0.005)
     assert abs(np.log(fit.R / R)) < 3 * np.sqrt(fit.cov_n_lnQ[1, 1])
+
+
+def test_lj_convention_is_the_mechanics_one():
+    """The reports' z0 = h/0.974 (pipeline.inversion.laws) is the L-J law the mechanics solves (Eq. 14)."""
+    from pipeline.inversion.laws import LJ_Z0_OVER_H
+
+    assert LJ_Z0_OVER_H == 1.0 / mech.LJ_H_OVER_Z0

@@ -5,10 +5,12 @@ import numpy as np
 import pytest
 
 from pipeline import mechanics as mech
-from pipeline.adhesion_range import run_adhesion_range
-from pipeline.figures_adhesion import map_boundary, map_coordinates, plot_rigid_laws
-from pipeline.inversion import run_inversion, write_synthetic_inputs
-from pipeline.reports import SUMMARY_COLUMNS, fmt, write_summary
+from pipeline.adhesion_range.figures import map_boundary, map_coordinates
+from pipeline.adhesion_range.report import SUMMARY_COLUMNS, fmt, write_summary
+from pipeline.adhesion_range.stage import run_adhesion_range
+from pipeline.inversion.stage import run_inversion
+from pipeline.mechanics.figures import plot_rigid_laws
+from pipeline.synth.stage_inputs import write_synthetic_inputs
 
 LAWS = ["dugdale", "lj", "tri1", "tri2"]
 

@@ -135,6 +135,32 @@ def test_editing_one_tip_reruns_only_its_affected_stages(finished_run):
     assert planned_commands(finished_run) == []
 
 
+def test_editing_the_inversion_settings_reruns_every_inversion_and_what_follows(finished_run):
+    """The h grid, laws, solver mode and Monte Carlo are read by the inversion from the workflow
+    config itself (--workflow-config); a change reruns the inversions of every tip, nothing before."""
+    path = finished_run / "config.yaml"
+    original = path.read_text()
+    try:
+        cfg = yaml.safe_load(original)
+        cfg["monte_carlo"]["seed"] = 2
+        path.write_text(yaml.safe_dump(cfg))
+        planned = planned_commands(finished_run)
+        assert {line.split()[3] for line in planned} == {"inversion", "adhesion-range", "adhesion-figures", "summary"}, planned
+        inversions = [line for line in planned if " inversion " in line]
+        assert len(inversions) == 2 and all("--workflow-config config.yaml " in line for line in inversions)
+    finally:
+        path.write_text(original)
+    assert planned_commands(finished_run) == []
+
+
+def test_inversion_settings_given_on_the_command_line_are_refused(finished_run):
+    """--config would change what Snakemake tracks but not the file the inversion reads: one clear line."""
+    proc = snakemake(finished_run, "-n", "--config", "solver_mode=rigid")
+    assert proc.returncode != 0
+    out = proc.stdout + proc.stderr
+    assert "h_grid, traction_laws, solver_mode, monte_carlo must be set in one config file" in out, out[-2000:]
+
+
 @pytest.mark.parametrize(
     "edit, needle",
     [

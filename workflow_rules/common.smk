@@ -7,7 +7,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 import pipeline.config as pc
-from pipeline.workflow_support import use_this_interpreter_for_jobs
+from pipeline.workflow_support import config_file_for_jobs, use_this_interpreter_for_jobs
 
 # Validate everything before any job runs: our loader first (one clear line per problem,
 # naming file and key; units -> SI), then Snakemake's own schema check (fills defaults).
@@ -19,6 +19,8 @@ try:
         TIPS[_name] = pc.load_tip_config(_path)  # concise errors naming file and key
         with open(_path) as _fh:
             validate(yaml.safe_load(_fh), "../pipeline/schemas/tip.schema.yaml")
+    # the inversion reads its settings (h grid, laws, solver mode, Monte Carlo) from this file itself
+    WORKFLOW_CONFIG = config_file_for_jobs(workflow.configfiles, WF, pc.INVERSION_KEYS)
 except pc.ConfigError as exc:
     raise WorkflowError(f"Configuration error: {exc}") from None
 validate(config, "../pipeline/schemas/config.schema.yaml")
@@ -35,6 +37,37 @@ wildcard_constraints:
     interval="[A-Za-z0-9_.-]+",
 
 
+# Paths of the results, below results_dir; "{tip}" and "{interval}" stay wildcards.
+def result(*parts):
+    """results_dir/<parts>."""
+    return "/".join((RESULTS, *parts))
+
+
+def tip_result(name):
+    """A file of a tip: results_dir/<tip>/<name>."""
+    return result("{tip}", name)
+
+
+def interval_result(stage, ext):
+    """A file of an interval: results_dir/<tip>/<stage>/<interval>.<ext>."""
+    return result("{tip}", stage, f"{{interval}}.{ext}")
+
+
+def intervals_of(tip, stage, ext):
+    """The files of every interval of ``tip`` (interval_result)."""
+    return expand(interval_result(stage, ext), tip=tip, interval=INTERVALS[tip])
+
+
+def job_log(job):
+    """A job's log: results_dir/logs/<job>.log, ``job`` e.g. "{tip}/forces/{interval}"."""
+    return result("logs", f"{job}.log")
+
+
+def job_benchmark(job):
+    """A job's Snakemake benchmark (run time, memory): results_dir/benchmarks/<job>.tsv."""
+    return result("benchmarks", f"{job}.tsv")
+
+
 def interval_cfg(wildcards):
     for iv in TIPS[wildcards.tip]["intervals"]:
         if iv["name"] == wildcards.interval:
@@ -46,10 +79,11 @@ def tip_yaml(wildcards):
     return TIP_FILES[wildcards.tip]
 
 
-# What each stage reads from a tip's YAML (after unit conversion).  Rules carry it as a
-# `settings` param instead of taking the YAML as an input: Snakemake's params trigger
-# then reruns exactly the stages whose settings changed (editing `cantilever:` reruns
-# forces -> inversion -> range, not profiles or fits), and other tips not at all.
+# What each stage reads from a tip's YAML (after unit conversion), and the inversion from the
+# workflow config.  Rules carry it as a `settings` param instead of taking the YAML as an input:
+# Snakemake's params trigger then reruns exactly the stages whose settings changed (editing
+# `cantilever:` reruns forces -> inversion -> range, not profiles or fits, and other tips not at
+# all; editing the h grid, the laws, the solver mode or the Monte Carlo reruns every inversion).
 STAGE_KEYS = {
     "profiles": ("tem", ("pixel_size", "orientation", "profile_height", "coating", "refine")),
     "fits": ("tem", ("fit_height", "S")),
@@ -69,6 +103,7 @@ def stage_settings(stage):
         picked = {k: src.get(k) for k in keys}
         if stage == "inversion":
             picked["intervals"] = [(iv["name"], iv["scans"]) for iv in tip["intervals"]]
+            picked["workflow"] = {k: WF[k] for k in pc.INVERSION_KEYS}
         if stage == "forces":  # the interval's own InvOLS settings
             iv = interval_cfg(wildcards)
             picked["interval"] = {k: iv.get(k) for k in INTERVAL_FORCE_KEYS}

@@ -2,28 +2,28 @@
 
 
 rule summary:
+    input:
+        expand(tip_result("adhesion_range.h5"), tip=TIPS),
+    output:
+        report(result("summary.csv"), caption="report/summary.rst", category="5 Summary"),
+    log:
+        job_log("summary"),
+    benchmark:
+        job_benchmark("summary")
     conda:
         CONDA_ENV
-    input:
-        expand(f"{RESULTS}/{{tip}}/adhesion_range.h5", tip=TIPS),
-    output:
-        report(f"{RESULTS}/summary.csv", caption="report/summary.rst", category="5 Summary"),
-    log:
-        f"{RESULTS}/logs/summary.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/summary.tsv"
     shell:
         "python -m pipeline summary --out-csv {output} {input} > {log} 2>&1"
 
 
 rule rigid_laws_figure:
+    output:
+        report(result("rigid_laws.png"), caption="report/rigid_laws.rst", category="5 Summary"),
+    log:
+        job_log("rigid_laws_figure"),
+    benchmark:
+        job_benchmark("rigid_laws_figure")
     conda:
         CONDA_ENV
-    output:
-        report(f"{RESULTS}/rigid_laws.png", caption="report/rigid_laws.rst", category="5 Summary"),
-    log:
-        f"{RESULTS}/logs/rigid_laws_figure.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/rigid_laws_figure.tsv"
     shell:
         "python -m pipeline rigid-laws-figure --out-png {output} > {log} 2>&1"

@@ -18,7 +18,6 @@ the thermal k scales as 1/InvOLS^2).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +27,14 @@ from pipeline.forces.curve import ForceCurve
 from pipeline.forces.errors import CalibrationError, ForceCurveError
 from pipeline.forces.invols import PER_INTERVAL_METHODS
 from pipeline.forces.reference_lever import reference_lever_k
-from pipeline.forces.settings import (CANTILEVER_DEFAULTS, READER_DEFAULTS, REFERENCE_DEFAULTS, THERMAL_DEFAULTS,
-                                      resolve_paths, with_defaults)
+from pipeline.forces.settings import (
+    CANTILEVER_DEFAULTS,
+    READER_DEFAULTS,
+    REFERENCE_DEFAULTS,
+    THERMAL_DEFAULTS,
+    resolve_paths,
+    with_defaults,
+)
 from pipeline.forces.thermal import SHAPE_FACTOR, fit_sho, read_thermal_file, thermal_k
 
 
@@ -122,9 +127,27 @@ def calibrate(cantilever: dict | None, curves: list[ForceCurve], reader: dict | 
     if "base_dir" in cant:
         reader.setdefault("base_dir", cant["base_dir"])
     details: dict = {}
-    x, u = {}, {}
+    x, u = {}, {}  # the calibration's inputs and their uncertainties, filled by the two steps
+    im, i_src = _tip_invols(cant, reader, curves, details, x, u)
+    km, k_fun, k_src = _spring_constant(cant, reader, curves, details, x, u)
+    if np.isnan(x["invols"]):
+        (k,), (uk,), _ = _propagate([k_fun], x, u)
+        return Calibration(k, uk, np.nan, np.nan, km, im, k_src, i_src, np.nan, np.nan, np.nan, details)
+    funcs = [k_fun, lambda p: p["invols"], lambda p: k_fun(p) * p["invols"]]
+    (k, inv, fac), (uk, ui, uf), cov = _propagate(funcs, x, u)
+    if km in ("reference_lever", "thermal") and "spring_constant_uncertainty" in cant:
+        uk = cant["spring_constant_uncertainty"]
+        uf = fac * np.hypot(uk / k, ui / inv)
+        cov[0, 1] = 0.0
+    corr = cov[0, 1] / (uk * ui) if uk > 0 and ui > 0 else 0.0
+    if not (k > 0 and inv > 0):
+        raise CalibrationError(f"non-positive calibration: k = {k:g} N/m, InvOLS = {inv:g} m/V")
+    return Calibration(float(k), float(uk), float(inv), float(ui), km, im, k_src, i_src, float(fac), float(uf), float(corr), details)
 
-    # --- InvOLS at tip level (the calibration session; per-interval values: invols.py) -----
+
+def _tip_invols(cant, reader, curves, details, x, u):
+    """InvOLS at tip level (the calibration session; per-interval values: invols.py) into x, u;
+    returns (method, source in words)."""
     im = cant["deflection_sensitivity_method"]
     per_interval = im in PER_INTERVAL_METHODS
     if per_interval:
@@ -142,23 +165,30 @@ def calibrate(cantilever: dict | None, curves: list[ForceCurve], reader: dict | 
             u["invols"] = cant["deflection_sensitivity_uncertainty"]
             i_src += "; u from tip YAML"
     elif im == "file":
-        v = _file_value(curves, "invols", "InvOLS")
-        if v is None:
-            if all(c.defl_units == "m" for c in curves):
-                x["invols"], u["invols"] = np.nan, 0.0
-                i_src = "not used: deflection recorded in metres by the instrument"
-            elif per_interval:
-                x["invols"], u["invols"] = np.nan, 0.0
-                i_src = "none at tip level (InvOLS per interval)"
-            else:
-                raise CalibrationError("no deflection sensitivity (InvOLS): the curve files carry none; give cantilever.deflection_sensitivity or cantilever.hard_sample_curves")
-        else:
-            x["invols"], u["invols"] = v, cant.get("deflection_sensitivity_uncertainty", 0.0)
-            i_src = "force-curve file metadata" + ("" if u["invols"] else " (uncertainty unknown: 0)")
+        i_src = _invols_from_files(cant, curves, per_interval, x, u)
     else:
         raise CalibrationError(f"unknown deflection_sensitivity_method {im!r}")
+    return im, i_src
 
-    # --- spring constant ------------------------------------------------------
+
+def _invols_from_files(cant, curves, per_interval, x, u) -> str:
+    """The InvOLS the curve files carry (NaN where none is needed or it is the interval's own)."""
+    v = _file_value(curves, "invols", "InvOLS")
+    if v is not None:
+        x["invols"], u["invols"] = v, cant.get("deflection_sensitivity_uncertainty", 0.0)
+        return "force-curve file metadata" + ("" if u["invols"] else " (uncertainty unknown: 0)")
+    if all(c.defl_units == "m" for c in curves):
+        x["invols"], u["invols"] = np.nan, 0.0
+        return "not used: deflection recorded in metres by the instrument"
+    if per_interval:
+        x["invols"], u["invols"] = np.nan, 0.0
+        return "none at tip level (InvOLS per interval)"
+    raise CalibrationError("no deflection sensitivity (InvOLS): the curve files carry none; give cantilever.deflection_sensitivity or cantilever.hard_sample_curves")
+
+
+def _spring_constant(cant, reader, curves, details, x, u):
+    """The spring constant's inputs into x, u; returns (method, k as a function of the inputs,
+    source in words)."""
     km = cant["spring_constant_method"]
     if km == "auto":
         km = ("given" if "spring_constant" in cant else "reference_lever" if "reference_lever" in cant
@@ -184,20 +214,7 @@ def calibrate(cantilever: dict | None, curves: list[ForceCurve], reader: dict | 
         raise CalibrationError(f"unknown spring_constant_method {km!r}")
     if km in ("reference_lever", "thermal") and "spring_constant_uncertainty" in cant:
         k_src += "; u(k) from tip YAML"
-
-    if np.isnan(x["invols"]):
-        (k,), (uk,), _ = _propagate([k_fun], x, u)
-        return Calibration(k, uk, np.nan, np.nan, km, im, k_src, i_src, np.nan, np.nan, np.nan, details)
-    funcs = [k_fun, lambda p: p["invols"], lambda p: k_fun(p) * p["invols"]]
-    (k, inv, fac), (uk, ui, uf), cov = _propagate(funcs, x, u)
-    if km in ("reference_lever", "thermal") and "spring_constant_uncertainty" in cant:
-        uk = cant["spring_constant_uncertainty"]
-        uf = fac * np.hypot(uk / k, ui / inv)
-        cov[0, 1] = 0.0
-    corr = cov[0, 1] / (uk * ui) if uk > 0 and ui > 0 else 0.0
-    if not (k > 0 and inv > 0):
-        raise CalibrationError(f"non-positive calibration: k = {k:g} N/m, InvOLS = {inv:g} m/V")
-    return Calibration(float(k), float(uk), float(inv), float(ui), km, im, k_src, i_src, float(fac), float(uf), float(corr), details)
+    return km, k_fun, k_src
 
 
 def _reference_setup(cant, reader, x, u, details):

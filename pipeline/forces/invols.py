@@ -164,65 +164,80 @@ def resolve_interval_invols(cant: dict, interval: dict, curves: list[ForceCurve]
     file_invols = _file_invols(curves, label)
     method = _method(cant, interval, file_invols)
     in_volts = any(c.defl_units == "V" or c.invols is not None for c in curves)
-
-    def tip_value(why=""):
-        if not np.isfinite(tip_cal.invols):
-            if not in_volts:
-                return IntervalInvols(np.nan, np.nan, "none", "not used: deflection recorded in metres by the instrument", True, contact)
-            raise CalibrationError(
-                f"{label}: no deflection sensitivity (InvOLS){why}; give cantilever.deflection_sensitivity or "
-                "hard_sample_curves (one value for the tip), or intervals[].deflection_sensitivity / calibration_curves")
-        return IntervalInvols(tip_cal.invols, tip_cal.u_invols, tip_cal.invols_method, tip_cal.invols_source, True, contact)
-
     if method in TIP_METHODS:
-        res = tip_value()
+        res = _tip_value(tip_cal, in_volts, contact, label)
     elif method == "interval_file":
-        if file_invols is None:
-            raise CalibrationError(f"{label}: deflection_sensitivity_method 'interval_file' but the interval's curve files "
-                                   "store no InvOLS")
-        u = float(cant.get("deflection_sensitivity_uncertainty", 0.0))
-        res = IntervalInvols(file_invols, u, "interval_file",
-                             "InvOLS stored in the interval's force-curve files (the instrument's calibration at this "
-                             "mounting)" + ("" if u else "; uncertainty unknown: 0"), False, contact)
+        res = _from_interval_file(file_invols, cant, contact, label)
     elif method == "interval_given":
-        if "deflection_sensitivity" not in interval:
-            raise CalibrationError(f"{label}: deflection_sensitivity_method 'interval_given' needs intervals[].deflection_sensitivity")
-        u = float(interval.get("deflection_sensitivity_uncertainty", 0.0))
-        if not (float(interval["deflection_sensitivity"]) > 0 and u >= 0):
-            raise CalibrationError(f"{label}: intervals[].deflection_sensitivity must be positive and its uncertainty "
-                                   f">= 0 (got {interval['deflection_sensitivity']:g} +- {u:g} m/V)")
-        res = IntervalInvols(float(interval["deflection_sensitivity"]), u, "interval_given",
-                             "intervals[].deflection_sensitivity of the tip YAML" + ("" if u else " (no uncertainty given: 0)"),
-                             False, contact)
+        res = _from_interval_given(interval, contact, label)
     elif method == "interval_curves":
         if "calibration_curves" not in interval:
             raise CalibrationError(f"{label}: deflection_sensitivity_method 'interval_curves' needs intervals[].calibration_curves")
         res = _from_calibration_curves(cant, interval, reader, fit_range, seg, floor, contact, label)
     elif method == "contact":
-        if contact.n:
-            src = (f"contact slope ({seg}) of {contact.n} of the interval's {len(curves)} curves on the "
-                   f"counter-surface, u = SEM with a {100 * floor:g} % floor")
-            if np.isfinite(tip_cal.invols):
-                src += (f"; the tip-level InvOLS of the calibration session ({tip_cal.invols * 1e9:.4g} nm/V) differs by "
-                        f"{100 * (tip_cal.invols / contact.mean - 1):+.1f} % (not used: the chip is remounted for every interval)")
-            res = IntervalInvols(contact.mean, contact.u, "contact", src, False, contact)
-            if contact.n < len(curves):
-                res.warnings.append(f"{len(curves) - contact.n} curve(s) gave no contact slope ({_contact_reasons(contact)})")
-        elif not in_volts:
-            res = tip_value()
-        elif np.isfinite(tip_cal.invols) and cant["contact_fallback"] == "tip":
-            res = tip_value()
-            res.warnings.append(f"no curve of the interval gives a contact slope ({_contact_reasons(contact)}); "
-                                f"the tip-level InvOLS {tip_cal.invols * 1e9:.4g} nm/V is used (cantilever.contact_fallback: tip)")
-        else:
-            raise CalibrationError(
-                f"{label}: no curve gives an InvOLS from its contact part ({_contact_reasons(contact)}); give "
-                "intervals[].deflection_sensitivity or calibration_curves for this interval, or set "
-                "cantilever.contact_fallback: tip to use the tip-level InvOLS")
+        res = _from_contact(contact, len(curves), tip_cal, cant, in_volts, label)
     else:
         raise CalibrationError(f"{label}: unknown deflection_sensitivity_method {method!r}")
     _check(res, float(cant["invols_check_sigma"]))
     return res
+
+
+def _tip_value(tip_cal, in_volts: bool, contact, label: str) -> IntervalInvols:
+    """The tip-level InvOLS (shared by the intervals); none needed for curves in metres."""
+    if not np.isfinite(tip_cal.invols):
+        if not in_volts:
+            return IntervalInvols(np.nan, np.nan, "none", "not used: deflection recorded in metres by the instrument", True, contact)
+        raise CalibrationError(
+            f"{label}: no deflection sensitivity (InvOLS); give cantilever.deflection_sensitivity or "
+            "hard_sample_curves (one value for the tip), or intervals[].deflection_sensitivity / calibration_curves")
+    return IntervalInvols(tip_cal.invols, tip_cal.u_invols, tip_cal.invols_method, tip_cal.invols_source, True, contact)
+
+
+def _from_interval_file(file_invols, cant, contact, label: str) -> IntervalInvols:
+    if file_invols is None:
+        raise CalibrationError(f"{label}: deflection_sensitivity_method 'interval_file' but the interval's curve files "
+                               "store no InvOLS")
+    u = float(cant.get("deflection_sensitivity_uncertainty", 0.0))
+    return IntervalInvols(file_invols, u, "interval_file",
+                          "InvOLS stored in the interval's force-curve files (the instrument's calibration at this "
+                          "mounting)" + ("" if u else "; uncertainty unknown: 0"), False, contact)
+
+
+def _from_interval_given(interval, contact, label: str) -> IntervalInvols:
+    if "deflection_sensitivity" not in interval:
+        raise CalibrationError(f"{label}: deflection_sensitivity_method 'interval_given' needs intervals[].deflection_sensitivity")
+    u = float(interval.get("deflection_sensitivity_uncertainty", 0.0))
+    if not (float(interval["deflection_sensitivity"]) > 0 and u >= 0):
+        raise CalibrationError(f"{label}: intervals[].deflection_sensitivity must be positive and its uncertainty "
+                               f">= 0 (got {interval['deflection_sensitivity']:g} +- {u:g} m/V)")
+    return IntervalInvols(float(interval["deflection_sensitivity"]), u, "interval_given",
+                          "intervals[].deflection_sensitivity of the tip YAML" + ("" if u else " (no uncertainty given: 0)"),
+                          False, contact)
+
+
+def _from_contact(contact, n_curves: int, tip_cal, cant, in_volts: bool, label: str) -> IntervalInvols:
+    """The interval's own contact slopes; without any, the tip's InvOLS where allowed."""
+    if contact.n:
+        src = (f"contact slope ({cant['contact_segment']}) of {contact.n} of the interval's {n_curves} curves on the "
+               f"counter-surface, u = SEM with a {100 * contact.floor:g} % floor")
+        if np.isfinite(tip_cal.invols):
+            src += (f"; the tip-level InvOLS of the calibration session ({tip_cal.invols * 1e9:.4g} nm/V) differs by "
+                    f"{100 * (tip_cal.invols / contact.mean - 1):+.1f} % (not used: the chip is remounted for every interval)")
+        res = IntervalInvols(contact.mean, contact.u, "contact", src, False, contact)
+        if contact.n < n_curves:
+            res.warnings.append(f"{n_curves - contact.n} curve(s) gave no contact slope ({_contact_reasons(contact)})")
+        return res
+    if not in_volts:
+        return _tip_value(tip_cal, in_volts, contact, label)
+    if np.isfinite(tip_cal.invols) and cant["contact_fallback"] == "tip":
+        res = _tip_value(tip_cal, in_volts, contact, label)
+        res.warnings.append(f"no curve of the interval gives a contact slope ({_contact_reasons(contact)}); "
+                            f"the tip-level InvOLS {tip_cal.invols * 1e9:.4g} nm/V is used (cantilever.contact_fallback: tip)")
+        return res
+    raise CalibrationError(
+        f"{label}: no curve gives an InvOLS from its contact part ({_contact_reasons(contact)}); give "
+        "intervals[].deflection_sensitivity or calibration_curves for this interval, or set "
+        "cantilever.contact_fallback: tip to use the tip-level InvOLS")
 
 
 def _from_calibration_curves(cant, interval, reader, fit_range, seg, floor, contact, label) -> IntervalInvols:

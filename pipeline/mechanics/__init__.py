@@ -43,10 +43,10 @@ from .api import (
     work_of_adhesion,
     work_of_adhesion_with_model,
 )
-from .elastic_contact import ElasticPulloff, elastic_path, elastic_pulloff
-from .traction_laws import TractionLaw, get_law, tabulated_law
 from .boundary import lambda_boundary, lambda_boundary_solved, rigid_error
-from .mdn import MDNBranch, jkr_limit_nd, mdn_branch as _mdn_branch
+from .elastic_contact import ElasticPulloff, elastic_path, elastic_pulloff
+from .mdn import MDNBranch, jkr_limit_nd
+from .mdn import mdn_branch as _mdn_branch
 from .rigid import LJ_H_OVER_Z0, rigid_force_curve, rigid_optimal_gap, rigid_pulloff_ratio, traction
 from .scaling import (
     log_displacement_scale,
@@ -59,6 +59,7 @@ from .scaling import (
     transition_parameter,
 )
 from .tables import build_table
+from .traction_laws import TractionLaw, get_law, tabulated_law
 
 __all__ = [
     "pulloff_nd",

@@ -35,7 +35,7 @@ from .elastic_tables import lambda_boundary_law, log_ratio_to_mdn
 from .mdn import pulloff_mdn_exact
 from .rigid import rigid_pulloff_nd_raw, rigid_pulloff_ratio
 from .scaling import _log_lambda, log_force_scale, log_g_group, work_from_lambda
-from .tables import log_pulloff_fast
+from .tables import log_pulloff_fast, pulloff_mdn
 
 __all__ = ["pulloff_nd", "pulloff_force", "work_of_adhesion", "model_used", "lambda_from_g",
            "pulloff_with_model", "work_of_adhesion_with_model", "rigid_boundary"]
@@ -45,12 +45,6 @@ __all__ = ["pulloff_nd", "pulloff_force", "work_of_adhesion", "model_used", "lam
 ELASTIC_DIRECT_MAX = 30.0
 
 _XMIN, _XMAX = np.log(V.LAMBDA_MIN), np.log(V.LAMBDA_MAX)
-
-
-def _mdn_nd(n, lam, exact):
-    if exact:
-        return pulloff_mdn_exact(n, lam)
-    return np.exp(log_pulloff_fast(n, np.log(lam)))
 
 
 def _elastic_nd(n, lam, pot, exact):
@@ -79,7 +73,7 @@ def rigid_boundary(n, potential="dugdale"):
 
 
 def _elastic_model_nd(n, lam, pot, exact):
-    return _mdn_nd(n, lam, exact) if pot == "dugdale" else _elastic_nd(n, lam, pot, exact)
+    return pulloff_mdn(n, lam, exact) if pot == "dugdale" else _elastic_nd(n, lam, pot, exact)
 
 
 def _out(a):

@@ -8,6 +8,7 @@ from scipy.optimize import brentq
 from . import _validate as V
 from .mdn import pulloff_mdn_exact
 from .rigid import rigid_pulloff_nd_raw
+from .tables import pulloff_mdn
 
 __all__ = ["lambda_boundary", "lambda_boundary_solved", "rigid_error"]
 
@@ -22,11 +23,9 @@ def lambda_boundary(n):
 
 
 def rigid_error(n, lam, exact=True):
-    """(F_rigid - F_MDn) / F_MDn for the Dugdale law at (n, Lambda) (>= 0)."""
-    from .api import pulloff_nd
-
+    """(F_rigid - F_MDn) / F_MDn for the Dugdale law at (n, Lambda) (>= 0): Eq. 12 against Eqs. 9-11."""
     n, lam = np.broadcast_arrays(V.exponent(n), V.transition(lam))
-    return rigid_pulloff_nd_raw(n, lam) / pulloff_nd(n, lam, model="mdn", exact=exact) - 1.0
+    return rigid_pulloff_nd_raw(n, lam) / pulloff_mdn(n, lam, exact) - 1.0
 
 
 def lambda_boundary_solved(n, tol=0.05):

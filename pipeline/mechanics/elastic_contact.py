@@ -68,6 +68,7 @@ from scipy import special as sp
 from scipy.optimize import minimize_scalar
 from threadpoolctl import threadpool_limits
 
+from .rigid import LJ_H_OVER_Z0
 from .traction_laws import TractionLaw, get_law
 
 __all__ = [
@@ -219,11 +220,11 @@ class _System:
 
 
 # --------------------------------------------------------------------------- Newton
-class _NoConvergence(RuntimeError):
+class _NoConvergenceError(RuntimeError):
     pass
 
 
-_LJ_FLOOR = -0.8 / 0.974  # s = -0.8 z0: L-J gaps are kept above this (d = 0 is singular)
+_LJ_FLOOR = -0.8 / LJ_H_OVER_Z0  # s = -0.8 z0: L-J gaps are kept above this (d = 0 is singular)
 
 
 def _newton(sys: _System, y, D, row, rhs, tol=1e-10, max_iter=30, patient=False):
@@ -279,7 +280,7 @@ def _newton(sys: _System, y, D, row, rhs, tol=1e-10, max_iter=30, patient=False)
             break
         y, D = yn, Dn
         R, c, f, J = resid(y, D, True)
-    raise _NoConvergence("Newton did not converge")
+    raise _NoConvergenceError("Newton did not converge")
 
 
 # ------------------------------------------------------------------- path states
@@ -453,7 +454,7 @@ class _PathSolver:
         on a fine grid, the start is made on the coarsest grid and carried over."""
         try:
             return self._start(a0)
-        except _NoConvergence:
+        except _NoConvergenceError:
             if self.level <= 1.0:
                 raise
         coarse = _PathSolver(self.n, self.kappa, self.law, self.x_cover, self.x_max, level=1.0, ramp=self.ramp)
@@ -468,7 +469,7 @@ class _PathSolver:
             nxt = min(1.0, theta + dtheta)
             try:
                 sol = self.solve(-a0, sol, theta=nxt)
-            except _NoConvergence:
+            except _NoConvergenceError:
                 dtheta *= 0.5
                 if dtheta < 1e-3:
                     raise
@@ -493,7 +494,7 @@ def _scan_out(solver: _PathSolver, plan, steps=10, max_solves=80):
             dpsi *= 1.5
         try:
             sol = solver.solve(psi, sols[-1], prev=sols[-2] if len(sols) > 1 else None)
-        except _NoConvergence:
+        except _NoConvergenceError:
             if abs(psi - sols[-1].psi) < 1e-6 * max(plan.a_start, 1.0):
                 raise
             targets[:0] = [0.5 * (psi + sols[-1].psi), psi]
@@ -504,7 +505,7 @@ def _scan_out(solver: _PathSolver, plan, steps=10, max_solves=80):
         fb = sols[i_best].f
         if sol.psi >= plan.psi_end and fb > 0 and len(sols) - i_best >= 2 and sol.f < fb - 0.03 * max(fb, plan.f_scale):
             return sols, i_best
-    raise _NoConvergence(f"no maximum of the tensile force within {max_solves} path points")
+    raise _NoConvergenceError(f"no maximum of the tensile force within {max_solves} path points")
 
 
 def _scan_in(solver: _PathSolver, plan, max_solves=150):
@@ -526,12 +527,12 @@ def _scan_in(solver: _PathSolver, plan, max_solves=150):
         try:
             sol = solver.solve(psi, cur, prev=sols[-2] if len(sols) > 1 else None)
             ok = abs(sol.f - cur.f) <= 0.08 * scale
-        except _NoConvergence:
+        except _NoConvergenceError:
             ok = False
         if not ok:
             step *= 0.5
             if abs(step) < 1e-7 * max(plan.a_scale, plan.psi_far):
-                raise _NoConvergence("path stalled")
+                raise _NoConvergenceError("path stalled")
             continue
         sols.append(sol)
         if sol.f > sols[i_best].f:
@@ -544,7 +545,7 @@ def _scan_in(solver: _PathSolver, plan, max_solves=150):
             step *= 1.5
         if sol.psi <= 0:  # in contact: steps of a fraction of the pinned radius
             step = -min(abs(step), 0.15 * max(sol.a, 0.2 * plan.a_scale))
-    raise _NoConvergence(f"no compressive state within {max_solves} path points")
+    raise _NoConvergenceError(f"no compressive state within {max_solves} path points")
 
 
 def _solve_towards(solver: _PathSolver, psi, known, depth=6):
@@ -554,7 +555,7 @@ def _solve_towards(solver: _PathSolver, psi, known, depth=6):
     near = min(known, key=lambda s: abs(s.psi - psi))
     try:
         sol = solver.solve(psi, near)
-    except _NoConvergence:
+    except _NoConvergenceError:
         if depth == 0:
             raise
         _solve_towards(solver, 0.5 * (near.psi + psi), known, depth - 1)
@@ -572,7 +573,7 @@ def _maximise(solver: _PathSolver, sols, i_best, rel_tol=1e-4):
     def neg_f(psi):
         try:
             sol = _solve_towards(solver, psi, known)
-        except _NoConvergence:
+        except _NoConvergenceError:
             return -min(known, key=lambda s: abs(s.psi - psi)).f
         return -sol.f
 
@@ -637,7 +638,7 @@ def _solve(n, lam, law, plan, level):
         sols, i_best = (_scan_out if law.wall else _scan_in)(solver, plan)
         best = _maximise(solver, sols, i_best)
     if float(solver.law.gap(best.y[-1:])[0]) <= law.reach:
-        raise _NoConvergence("solution domain too small (traction at the last node)")
+        raise _NoConvergenceError("solution domain too small (traction at the last node)")
     return best, solver, sols
 
 
@@ -686,7 +687,7 @@ def elastic_pulloff(n, Lambda, law="dugdale", level=2.0, estimate_error=False):
         try:
             err = abs(best.f - _solve(n, lam, law, plan, coarse_level)[0].f) / abs(best.f)
             break
-        except _NoConvergence:
+        except _NoConvergenceError:
             continue
     return ElasticPulloff(
         law=law.name, n=n, Lambda=lam, kappa=float(kappa_from_lambda(n, lam)), ratio=float(best.f),

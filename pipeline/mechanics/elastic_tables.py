@@ -129,7 +129,7 @@ def load_elastic_table():
     return build_elastic_table(_cache_path())
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _spline(law):
     data = load_elastic_table()
     k = ELASTIC_TABLE_SPEC["k"]
@@ -150,7 +150,7 @@ def log_ratio_to_mdn(law, n, log_lam, dx=0):
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _boundary_nodes(law):
     """log n and log Lambda_b,law(n) on 181 nodes: where the rigid pull-off of the law exceeds
     its elastic pull-off by 5 % (the paper's criterion behind Eq. 13, applied to this law)."""
@@ -166,7 +166,7 @@ def _boundary_nodes(law):
         n = float(np.exp(l))
         rig0 = np.log(float(rigid_pulloff_ratio(n, law))) + 2.0 / n * np.log(n)
 
-        def excess(xx):
+        def excess(xx, n=n, rig0=rig0):  # brentq calls it in this iteration
             el = float(log_pulloff_fast(n, xx)) + float(log_ratio_to_mdn(law, n, xx))
             return rig0 + (n - 2.0) / n * xx - el - np.log(1.05)
 

@@ -15,7 +15,7 @@ maximised over D >= 0.  Normalised by the rigid Dugdale value F_Dug = pi sigma_0
     Tri2     F/F_Dug = 1/(p+1) [(2-u)^(p+1) - 2 (1-u)_+^(p+1)]               (u <= 2)
              u* = (1 - 2^(1-n/2)) / (1 - 2^(-n/2)),
              ratio = 2 n / ((n+2) (2^(n/2) - 1)^(2/n))
-    L-J 3-9  sigma(d) = 8W/(3 z0) [(z0/d)^3 - (z0/d)^9], d = z0 + D + z, z0 = h/0.974;
+    L-J 3-9  sigma(d) = 8W/(3 z0) [(z0/d)^3 - (z0/d)^9] (Eq. 14), d = z0 + D + z, z0 = h/0.974;
              using int_0^inf z^(p-1) (d+z)^(-k) dz = d^(p-k) B(p, k-p):
              F/F_Dug = (8p/3) (h/z0)^(1-p) [g^(p-3) B(p,3-p) - g^(p-9) B(p,9-p)],  g = d/z0,
              g*^6 = (9-p) B(p,9-p) / ((3-p) B(p,3-p))  (>= 1 for n >= 2; clipped to D >= 0).
@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 #: h / z0 for the L-J 3-9 law tied to Dugdale (equal W and, to 0.03 %, equal peak stress).
-#: The paper (Sec. 4.3) uses 0.974; the exact equal-peak value is 9 sqrt(3)/16 = 0.97428.
+#: The paper (Sec. 4.3, with Eq. 14) uses 0.974; the exact equal-peak value is 9 sqrt(3)/16 = 0.97428.
 LJ_H_OVER_Z0 = 0.974
 
 
@@ -53,6 +53,7 @@ def _lj_terms(p):
 
 
 def _lj_force(p, g, b3, b9):
+    """Rigid L-J 3-9 force (Eq. 14 over the plan area) over F_Dug at apex gap g = d/z0 (module doc)."""
     return 8.0 * p / 3.0 * LJ_H_OVER_Z0 ** (1.0 - p) * (g ** (p - 3.0) * b3 - g ** (p - 9.0) * b9)
 
 
@@ -112,7 +113,8 @@ def rigid_pulloff_nd_raw(n, lam, potential="dugdale"):
 
 
 def traction(s, W, h, potential="dugdale"):
-    """Attractive traction sigma(s) [Pa] at separation s [m] from the zero-stress gap (ERRATA table)."""
+    """Attractive traction sigma(s) [Pa] at separation s [m] from the zero-stress gap (ERRATA table;
+    L-J 3-9: Eq. 14 with d = z0 + s, z0 = h/0.974)."""
     s = np.asarray(s, float)
     pot = V.potential(potential)
     sig0 = W / h

@@ -26,7 +26,7 @@ from scipy.interpolate import RectBivariateSpline
 
 from .mdn import pulloff_mdn_exact
 
-__all__ = ["TABLE_SPEC", "build_table", "table_path", "log_pulloff_fast", "table_spline"]
+__all__ = ["TABLE_SPEC", "build_table", "table_path", "log_pulloff_fast", "table_spline", "pulloff_mdn"]
 
 SOLVER_VERSION = "mdn-1"
 TABLE_SPEC = dict(
@@ -97,3 +97,11 @@ def log_pulloff_fast(n, log_lam, dx=0):
     n, log_lam = np.broadcast_arrays(np.asarray(n, float), np.asarray(log_lam, float))
     out = table_spline().ev(np.log(n).ravel(), log_lam.ravel(), dy=dx)
     return out.reshape(n.shape)
+
+
+def pulloff_mdn(n, lam, exact=False):
+    """M-D-n pull-off -min P~ (> 0; Eqs. 9-11) at validated, broadcast (n, Lambda): the direct
+    solve (``exact``) or the table (~1.5e-8 relative)."""
+    if exact:
+        return pulloff_mdn_exact(n, lam)
+    return np.exp(log_pulloff_fast(n, np.log(lam)))

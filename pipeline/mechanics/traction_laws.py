@@ -68,7 +68,7 @@ class TractionLaw:
 
     # ------------------------------------------------------------------ pointwise law
     def traction(self, y):
-        """T(y) (tension positive, units of sigma_0) in the unified variable y."""
+        """T(y) (tension positive, units of sigma_0) in the unified variable y (L-J: Eq. 14)."""
         y = np.asarray(y, float)
         if self.kind == "lj":
             r = _LJ_ZETA / (_LJ_ZETA + y)
@@ -193,6 +193,8 @@ def _piecewise_segments(pieces, ra, length, ya, yb):
 
 
 def _lj_segments(ra, length, ya, yb, attraction=1.0):
+    """Cell integrals of the L-J 3-9 traction (Eq. 14) and their derivatives in the end values
+    (ya, yb), by 6-point Gauss-Legendre quadrature (module doc)."""
     ra, length, ya, yb = (np.asarray(v, float)[:, None] for v in (ra, length, ya, yb))
     y = ya + (yb - ya) * _GL_U
     r = _LJ_ZETA / (_LJ_ZETA + y)

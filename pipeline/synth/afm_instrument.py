@@ -264,13 +264,8 @@ def simulate_curve(it: Interaction, lever: Lever, inst: Instrument, *, seed=0, h
     """One approach-retract ramp as the instrument records it (module doc)."""
     rng = np.random.default_rng(seed)
     k = lever.k
-    # contact depth that reaches the trigger (|F(0)| + k trigger of repulsion), with margin
-    F_need = abs(float(attraction(0.0, it))) + k * inst.trigger
-    B, kn = 1.0 / (it.n * it.Q), sneddon_constant(it.n)
-    a_need = (F_need / (2 * it.E_star * it.n / (it.n + 1) * B * kn)) ** (1.0 / (it.n + 1))
-    delta_max = 1.5 * B * kn * a_need**it.n + 0.05e-9
     D0 = inst.free_travel
-    br = _branches(it, lever, D0, delta_max)
+    br = _branches(it, lever, D0, _trigger_depth(it, k, inst))
     # trigger: first z on the contact branch where d = trigger
     i0, i1 = br.segments[0]
     dz = br.d[i0:i1][::-1]
@@ -283,12 +278,7 @@ def simulate_curve(it: Interaction, lever: Lever, inst: Instrument, *, seed=0, h
     dt = 1.0 / fi
     n_app = int(np.ceil(T_ramp * fi))
     n_dw = int(round(inst.dwell * fi))
-    # retract until the lever has been free for ``retract_extra`` (the pull-off is at the contact branch's fold)
-    # (without an instability the lever detaches smoothly: "free" where the attraction is < 1 % of F_p)
-    Dseg = br.D[i0:i1]
-    free = np.flatnonzero((Dseg > 0) & (np.abs(attraction(Dseg, it)) < 0.01 * it.F_p))
-    z_detach = float(br.z[i0:i1][free[0]]) if free.size else float(br.z[i0:i1][-1])
-    z_ret_end = min(0.0, z_detach) - inst.retract_extra
+    z_ret_end = _retract_end(br, i0, i1, it, inst)
     n_ret = int(np.ceil((z_trig - z_ret_end) / inst.velocity * fi))
     z_app = np.linspace(0.0, z_trig, n_app, endpoint=False)
     z_dw = np.full(n_dw, z_trig)
@@ -323,16 +313,40 @@ def simulate_curve(it: Interaction, lever: Lever, inst: Instrument, *, seed=0, h
     height = height_start - (zs * inst.z_scale + rng.standard_normal(zs.size) * inst.z_noise)
     n_a = int(np.ceil((n_app + n_dw) / over))
     seg = np.array(["extend"] * n_a + ["retract"] * (volts.size - n_a), dtype=object)
-    # truth: the largest attraction (the pull-off force), and what the contact slope really is
+    truth = _truth(it, lever, inst, br, i0, i1, len(jumps), seed, float(ts[-1]))
+    return InstrumentCurve(height, volts, seg, truth)
+
+
+def _trigger_depth(it: Interaction, k, inst: Instrument):
+    """Contact depth that reaches the trigger (|F(0)| + k trigger of repulsion), with margin."""
+    F_need = abs(float(attraction(0.0, it))) + k * inst.trigger
+    B, kn = 1.0 / (it.n * it.Q), sneddon_constant(it.n)
+    a_need = (F_need / (2 * it.E_star * it.n / (it.n + 1) * B * kn)) ** (1.0 / (it.n + 1))
+    return 1.5 * B * kn * a_need**it.n + 0.05e-9
+
+
+def _retract_end(br, i0, i1, it: Interaction, inst: Instrument):
+    """Where the retract ends: once the lever has been free for ``retract_extra`` (the pull-off is
+    at the contact branch's fold; without an instability the lever detaches smoothly: "free" where
+    the attraction is < 1 % of F_p)."""
+    Dseg = br.D[i0:i1]
+    free = np.flatnonzero((Dseg > 0) & (np.abs(attraction(Dseg, it)) < 0.01 * it.F_p))
+    z_detach = float(br.z[i0:i1][free[0]]) if free.size else float(br.z[i0:i1][-1])
+    return min(0.0, z_detach) - inst.retract_extra
+
+
+def _truth(it: Interaction, lever: Lever, inst: Instrument, br, i0, i1, jumps: int, seed, duration) -> dict:
+    """The truth of a curve: the largest attraction (the pull-off force), what the contact slope
+    really is, and every parameter of the lever and the instrument."""
+    k = lever.k
     Dg = np.linspace(0.0, 6.0 * it.ell, 4001)
     F_max = float(-attraction(Dg, it).min())
     _, kc_trig = repulsion(-br.D[i0:i1][np.argmin(np.abs(br.d[i0:i1] - 0.5 * inst.trigger))], it.n, it.Q, it.E_star)
-    truth = dict(F_p=F_max, k=k, invols=lever.invols, delta_m=F_max / k, law=it.law, ell=it.ell, n=it.n, Q=it.Q,
-                 E_star=it.E_star, contact_stiffness_mid=float(kc_trig),
-                 contact_slope_factor=float(kc_trig / (kc_trig + k)), jumps=len(jumps), seed=seed, fs=inst.fs,
-                 duration=float(ts[-1]), **{f"lever_{a}": v for a, v in asdict(lever).items()},
-                 **{f"inst_{a}": v for a, v in asdict(inst).items()})
-    return InstrumentCurve(height, volts, seg, truth)
+    return dict(F_p=F_max, k=k, invols=lever.invols, delta_m=F_max / k, law=it.law, ell=it.ell, n=it.n, Q=it.Q,
+                E_star=it.E_star, contact_stiffness_mid=float(kc_trig),
+                contact_slope_factor=float(kc_trig / (kc_trig + k)), jumps=jumps, seed=seed, fs=inst.fs,
+                duration=duration, **{f"lever_{a}": v for a, v in asdict(lever).items()},
+                **{f"inst_{a}": v for a, v in asdict(inst).items()})
 
 
 HEADER = ("Height (nm)", "Vertical Deflection (V)", "Segment")

@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 
-
 @dataclass
 class Case:
     seed: int
@@ -158,9 +157,10 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
     compliance correction) against the weighted truth of the curves used."""
     import h5py
 
-    from pipeline.adhesion_range import analyse_law
     from pipeline.forces.stage import run_forces
-    from pipeline.inversion import load_inversion, run_inversion, write_synthetic_fit
+    from pipeline.inversion.io import load_inversion
+    from pipeline.inversion.stage import run_inversion
+    from pipeline.synth.stage_inputs import write_synthetic_fit
 
     tmp = tempfile.TemporaryDirectory() if workdir is None else None
     root = Path(workdir or tmp.name)
@@ -191,7 +191,17 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
     h = np.geomspace(0.1e-9, 20e-9, 160) if h_grid is None else h_grid
     run_inversion(fits, forces, root / "inversion.h5", intervals=ivs, E_star=case.E_star, u_E_star=0.03 * case.E_star,
                   h_grid=h, laws=("dugdale",), mc_samples=mc_samples, seed=case.seed, tip=f"case{case.seed}")
-    inv = load_inversion(root / "inversion.h5")
+    out = _against_truth(load_inversion(root / "inversion.h5"), case, truth_F)
+    if tmp is not None:
+        tmp.cleanup()
+    return out
+
+
+def _against_truth(inv: dict, case: Case, truth_F: dict) -> dict:
+    """The errors of F_p, h and W_A against the case's truth and whether the 95 % intervals cover
+    it, for random effects (keys unprefixed) and Birge scaling (``birge_`` keys)."""
+    from pipeline.adhesion_range.analysis import analyse_law
+
     fp_err = [inv["intervals"][nm]["F_p_mean"] / truth_F[nm] - 1.0 for nm in truth_F]
     out = {"seed": case.seed, "kind": case.kind, "intervals": len(case.n),
            "drift_sd": float(np.std(case.invols) / np.mean(case.invols)),
@@ -205,14 +215,12 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
              "birge": float(g.get("birge_ratio", np.nan)), "tau": float(g.get("tau", np.nan)),
              "chi2": float(g["chi2_min"]), "dof": int(g["dof"]), "note": g.get("note", "")}
         out.update(r if model == "random_effects" else {f"birge_{k}": v for k, v in r.items()})
-    if tmp is not None:
-        tmp.cleanup()
     return out
 
 
 def _max_lambda_ratio(case: Case) -> float:
     """Largest Lambda / Lambda_b(n) over the worn intervals at the true W_A, h (> 1: elastic, Eq. 13)."""
-    from pipeline.inversion import regime
+    from pipeline.inversion.solve import regime
 
     n = np.asarray(case.n[1:], float)
     q = case.S ** (n - 2.0) * case.R ** (n - 1.0)

@@ -57,6 +57,21 @@ def _instability_gaps(F_p, k, lam):
     return u_off * lam, u_snap * lam
 
 
+def _branch_tables(F_p, k, lam, kc, g_off, g_snap, z0, z_c, s, R):
+    """Deflection against extension on the two branches, ((z, d) in contact, (z, d) free): the
+    contact branch a straight line (g <= 0) and the adhesive gap 0..g_off, the free branch g >= g_snap."""
+    delta_max = F_p / k
+    g_gap = np.linspace(0.0, g_off, 64)
+    d_gap = _force(g_gap, F_p, lam, kc) / k
+    z_gap = z_c + d_gap - g_gap
+    z_deep = R + 1e-9
+    zc_b = np.concatenate([z_gap[::-1], [z_deep]])
+    dc_b = np.concatenate([d_gap[::-1], [-delta_max + s * (z_deep - z0)]])
+    g_free = np.geomspace(g_snap, z_c + 10e-9, 4000)
+    d_free = _force(g_free, F_p, lam, kc) / k
+    return (zc_b, dc_b), ((z_c + d_free - g_free)[::-1], d_free[::-1])
+
+
 def make_force_curve(F_p, k, invols, *, seed=0, offset_V=0.0, tilt=0.0, noise=0.1e-9,
                      contact_stiffness=np.inf, adhesion_range=0.5e-9, setpoint_deflection=20e-9,
                      z_range=None, n_points=2000, height_start=1.0e-6, height_jitter=0.0,
@@ -87,16 +102,7 @@ def make_force_curve(F_p, k, invols, *, seed=0, offset_V=0.0, tilt=0.0, noise=0.
     z_po = z_c + float(_force(g_off, F_p, lam, kc)) / k - g_off
     if z_po < 0.3 * R:
         raise ValueError(f"z_range {R:g} m leaves too little free retract after the pull-off (at {z_po:g} m)")
-    # contact branch: straight line (g <= 0) + adhesive gap 0..g_off; free branch g >= g_snap
-    g_gap = np.linspace(0.0, g_off, 64)
-    d_gap = _force(g_gap, F_p, lam, kc) / k
-    z_gap = z_c + d_gap - g_gap
-    z_deep = R + 1e-9
-    zc_b = np.concatenate([z_gap[::-1], [z_deep]])
-    dc_b = np.concatenate([d_gap[::-1], [-delta_max + s * (z_deep - z0)]])
-    g_free = np.geomspace(g_snap, z_c + 10e-9, 4000)
-    d_free = _force(g_free, F_p, lam, kc) / k
-    zf_b, df_b = (z_c + d_free - g_free)[::-1], d_free[::-1]
+    (zc_b, dc_b), (zf_b, df_b) = _branch_tables(F_p, k, lam, kc, g_off, g_snap, z0, z_c, s, R)
     z_snap = float(zf_b[-1])
     n_app = n_points // 2
     z_app = np.linspace(0.0, R, n_app)

@@ -202,6 +202,50 @@ def _bbox_sparse(d, tol=0.0):
     return r0, r1, c0, c1, d[r0:r1, c0:c1]
 
 
+def _central(fn, h):
+    """Central difference of fn at 0 with step h."""
+    return (fn(h) - fn(-h)) / (2.0 * h)
+
+
+def _shape_derivatives(prof, render, s):
+    """Image derivatives with respect to n, log r_ref and each shank spline coefficient, and the
+    steps of the first two.  The window power law's steps move the surface by at most ``s`` (m)
+    along its normal (a radial change dr moves it by dr / sqrt(1 + (dr/dz)^2): little on the flat
+    face of a blunt apex)."""
+    derivs = {}
+    zw = prof.zt[prof.iw]
+    rw = prof.window_radius(prof.n, math.log(prof.r_ref))
+    to_normal = 1.0 / np.sqrt(1.0 + np.gradient(rw, zw) ** 2)
+    dr_dn = rw * np.log(np.maximum(zw, 1e-300) / prof.z_ref) / prof.n**2  # |dr/dn| (m), 0 at the apex
+    dn = s / np.max(np.abs(dr_dn) * to_normal)
+    derivs["n"] = _central(lambda h: render(tables=prof.tables(n=prof.n + h)), dn)
+    dl = s / np.max(rw * to_normal)
+    derivs["log_r_ref"] = _central(lambda h: render(tables=prof.tables(dlog_r=h)), dl)
+    for k in range(prof.n_spline):
+        derivs[f"c{k}"] = _central(lambda h, k=k: render(tables=prof.tables(spline=k, dc=h)), s)
+    return derivs, dn, dl
+
+
+def _fisher_matrix(derivatives, expected):
+    """F_ij = sum over pixels of d_i d_j / I (Poisson), each derivative image cut to its bounding
+    box and only overlapping boxes summed."""
+    w = 1.0 / expected
+    blocks = [_bbox_sparse(d) for d in derivatives]
+    P = len(blocks)
+    F = np.zeros((P, P))
+    for i in range(P):
+        ri0, ri1, ci0, ci1, bi = blocks[i]
+        for j in range(i, P):
+            rj0, rj1, cj0, cj1, bj = blocks[j]
+            r0, r1, c0, c1 = max(ri0, rj0), min(ri1, rj1), max(ci0, cj0), min(ci1, cj1)
+            if r1 <= r0 or c1 <= c0:
+                continue
+            F[i, j] = F[j, i] = np.einsum(
+                "ij,ij,ij->", bi[r0 - ri0:r1 - ri0, c0 - ci0:c1 - ci0],
+                bj[r0 - rj0:r1 - rj0, c0 - cj0:c1 - cj0], w[r0:r1, c0:c1])
+    return F
+
+
 def fisher_information(n, Q, pixel_size, shape, *, blur_sigma_px=1.0, edge_snr=5.0, coating_thickness=0.0,
                        rotation_deg=0.0, orientation="down", apex_px=None, seed=0, z_window=6e-9,
                        fine_spacing=1e-9, fine_extent=10e-9, coarse_spacing=5e-9, step_px=0.3,
@@ -240,61 +284,33 @@ def fisher_information(n, Q, pixel_size, shape, *, blur_sigma_px=1.0, edge_snr=5
         renders[0] += 1
         return expected_tem_image(**kw)
 
-    def central(fn, h):
-        return (fn(h) - fn(-h)) / (2.0 * h)
-
     # geometric step, rounded up to a multiple of 1/(2 ss) px: a central difference that moves
     # an edge aligned with the pixel grid (the flat face of a blunt apex, a shank edge) then
     # spans a whole number of sub-sample rows at any sub-pixel position
     step_px = math.ceil(step_px * 2 * supersample - 1e-9) / (2.0 * supersample)
     s = step_px * px  # (m)
-    derivs = {}
-    # window power law: steps moving the surface by at most s along its normal (a radial
-    # change dr moves it by dr / sqrt(1 + (dr/dz)^2): little on the flat face of a blunt apex)
-    zw = prof.zt[prof.iw]
-    rw = prof.window_radius(prof.n, math.log(prof.r_ref))
-    to_normal = 1.0 / np.sqrt(1.0 + np.gradient(rw, zw) ** 2)
-    dr_dn = rw * np.log(np.maximum(zw, 1e-300) / prof.z_ref) / prof.n**2  # |dr/dn| (m), 0 at the apex
-    dn = s / np.max(np.abs(dr_dn) * to_normal)
-    derivs["n"] = central(lambda h: render(tables=prof.tables(n=prof.n + h)), dn)
-    dl = s / np.max(rw * to_normal)
-    derivs["log_r_ref"] = central(lambda h: render(tables=prof.tables(dlog_r=h)), dl)
-    for k in range(prof.n_spline):
-        derivs[f"c{k}"] = central(lambda h, k=k: render(tables=prof.tables(spline=k, dc=h)), s)
-    derivs["apex_row"] = central(lambda h: render(apex_px=(apex[0] + h, apex[1])), step_px)
-    derivs["apex_col"] = central(lambda h: render(apex_px=(apex[0], apex[1] + h)), step_px)
+    derivs, dn, dl = _shape_derivatives(prof, render, s)
+    derivs["apex_row"] = _central(lambda h: render(apex_px=(apex[0] + h, apex[1])), step_px)
+    derivs["apex_col"] = _central(lambda h: render(apex_px=(apex[0], apex[1] + h)), step_px)
     derivs["rotation"] = _rotation_derivative(render, base, apex, px, step_px, z_window)
     ds = 0.05 * blur_sigma_px
-    derivs["blur"] = central(lambda h: render(blur_sigma_px=blur_sigma_px + h), ds) if blur_sigma_px > 0 else None
-    derivs["background"] = central(lambda h: render(background=1.0 + h), 1e-3)
-    derivs["gradient"] = central(lambda h: render(gradient=gradient + h), 1e-3)
-    derivs["gradient_perp"] = central(lambda h: render(gradient_perp=h), 1e-3)
-    derivs["log_lambda_core"] = central(lambda h: render(lambda_core=lambda_core * math.exp(h)), 1e-2)
+    derivs["blur"] = _central(lambda h: render(blur_sigma_px=blur_sigma_px + h), ds) if blur_sigma_px > 0 else None
+    derivs["background"] = _central(lambda h: render(background=1.0 + h), 1e-3)
+    derivs["gradient"] = _central(lambda h: render(gradient=gradient + h), 1e-3)
+    derivs["gradient_perp"] = _central(lambda h: render(gradient_perp=h), 1e-3)
+    derivs["log_lambda_core"] = _central(lambda h: render(lambda_core=lambda_core * math.exp(h)), 1e-2)
     if coated:
         def coat(h):  # same grid and outer table, core eroded by the perturbed thickness
             t = coating_thickness + h
             return render(coating_thickness=t, tables=(prof.zt, prof.ro, eroded_radius(prof.zt, prof.ro, t)))
-        derivs["coating"] = central(coat, s)
-        derivs["log_lambda_coat"] = central(lambda h: render(lambda_coat=lambda_coat * math.exp(h)), 1e-2)
+        derivs["coating"] = _central(coat, s)
+        derivs["log_lambda_coat"] = _central(lambda h: render(lambda_coat=lambda_coat * math.exp(h)), 1e-2)
     # no blur -> no blur parameter; a shank coefficient the image does not see is dropped
     dropped = [k for k, v in derivs.items() if v is None or not np.any(v)]
     derivs = {k: v for k, v in derivs.items() if k not in dropped}
 
     names = list(derivs)
-    w = 1.0 / I0
-    blocks = [_bbox_sparse(derivs[k]) for k in names]
-    P = len(names)
-    F = np.zeros((P, P))
-    for i in range(P):
-        ri0, ri1, ci0, ci1, bi = blocks[i]
-        for j in range(i, P):
-            rj0, rj1, cj0, cj1, bj = blocks[j]
-            r0, r1, c0, c1 = max(ri0, rj0), min(ri1, rj1), max(ci0, cj0), min(ci1, cj1)
-            if r1 <= r0 or c1 <= c0:
-                continue
-            F[i, j] = F[j, i] = np.einsum(
-                "ij,ij,ij->", bi[r0 - ri0:r1 - ri0, c0 - ci0:c1 - ci0],
-                bj[r0 - rj0:r1 - rj0, c0 - cj0:c1 - cj0], w[r0:r1, c0:c1])
+    F = _fisher_matrix([derivs[k] for k in names], I0)
     info = dict(steps=dict(n=dn, log_r_ref=dl, spline=s, apex_px=step_px, blur=ds), z_top=z_top, apex_px=apex,
                 n_spline=prof.n_spline, band_pixels=int(band.sum()), dropped=dropped)
     if keep_images:
@@ -324,7 +340,10 @@ def _rotation_derivative(render, base, apex, px, step_px, L0):
     return out
 
 
-def crb_summary(res: FisherResult, heights=np.arange(1, 7) * 1e-9, edge_snr=None):
+CRB_HEIGHTS = np.arange(1, 7) * 1e-9  # m, crb_summary's default heights above the apex
+
+
+def crb_summary(res: FisherResult, heights=CRB_HEIGHTS, edge_snr=None):
     """Bounds from a FisherResult: CRB of n (full nuisances, optimistic) and of the relative rigid
     Dugdale pull-off area error (Eq. 12, ``pipeline.fits.rigid_dugdale_area``) at ``heights`` (m).
 

@@ -136,13 +136,7 @@ def expected_tem_image(n, Q, pixel_size, shape, apex_px, *, rotation_deg=0.0, bl
     clean = np.exp(-att)
     if band is None:
         band = silhouette_band(m_out, m_core, band_width)
-    ss = int(supersample)
-    sub = (np.arange(ss) + 0.5) / ss - 0.5
-    rb, cb = np.nonzero(band)
-    rr = rb[:, None, None] + sub[None, :, None]
-    cc = cb[:, None, None] + sub[None, None, :]
-    att_b, _ = attenuation(rr, cc)
-    clean[rb, cb] = np.exp(-att_b).mean(axis=(1, 2))
+    _supersample_band(clean, band, attenuation, int(supersample))
     # weak illumination gradient, then blur (optics) on the transmitted intensity
     u, v = cols / W - 0.5, rows / H - 0.5
     illum = 1.0 + (gradient * (u * 0.8 + v * 0.6) + gradient_perp * (u * 0.6 - v * 0.8))
@@ -150,6 +144,17 @@ def expected_tem_image(n, Q, pixel_size, shape, apex_px, *, rotation_deg=0.0, bl
     if blur_sigma_px and blur_sigma_px > 0:
         img = ndimage.gaussian_filter(img, blur_sigma_px, mode="nearest")
     return (img, band) if return_band else img
+
+
+def _supersample_band(clean, band, attenuation, ss):
+    """Replace the transmission of the pixels of ``band`` (in place) by the mean over ss x ss
+    sub-pixels (where the projected thickness has its square-root kink)."""
+    sub = (np.arange(ss) + 0.5) / ss - 0.5
+    rb, cb = np.nonzero(band)
+    rr = rb[:, None, None] + sub[None, :, None]
+    cc = cb[:, None, None] + sub[None, None, :]
+    att_b, _ = attenuation(rr, cc)
+    clean[rb, cb] = np.exp(-att_b).mean(axis=(1, 2))
 
 
 def axis_contrast(tables, lambda_core, lambda_coat, z=3e-9):
@@ -206,21 +211,9 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
 
     maxval = np.iinfo(dtype).max if np.issubdtype(dtype, np.integer) else 1.0
     bg = background_counts if background_counts is not None else 0.8 * maxval / (1 + gradient)
-    if edge_snr is None or not np.isfinite(edge_snr):
-        noisy = img * bg
-        sigma_noise = 0.0
-    elif noise == "poisson":
-        # Poisson counts: sigma_bg = sqrt(N_bg) with N_bg = (snr / contrast)^2
-        nbg = background_dose(edge_snr, contrast)
-        counts = rng.poisson(img * nbg).astype(float)
-        noisy = counts * (bg / nbg)
-        sigma_noise = bg / math.sqrt(nbg)
-    else:
-        sigma_noise = bg * contrast / edge_snr
-        noisy = img * bg + rng.normal(0.0, sigma_noise, img.shape)
-
+    noisy, sigma_noise = _with_noise(img, bg, edge_snr, noise, contrast, rng)
     if scale_bar:
-        _draw_scale_bar(noisy, px, orientation, maxval)
+        _draw_scale_bar(noisy, px, orientation)
     if np.issubdtype(dtype, np.integer):
         out = np.clip(np.rint(noisy), 0, maxval).astype(dtype)
     else:
@@ -233,6 +226,19 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
                  noise_sigma=float(sigma_noise), background=float(bg), cone_above=float(cone_above),
                  lambda_core=float(lambda_core), lambda_coat=float(lambda_coat), seed=int(seed))
     return out, truth
+
+
+def _with_noise(img, bg, edge_snr, noise, contrast, rng):
+    """(image in counts with noise, the noise sigma at the background): Poisson counts with
+    sigma_bg = sqrt(N_bg), N_bg = (snr / contrast)^2, or Gaussian noise; none for an SNR of None/inf."""
+    if edge_snr is None or not np.isfinite(edge_snr):
+        return img * bg, 0.0
+    if noise == "poisson":
+        nbg = background_dose(edge_snr, contrast)
+        counts = rng.poisson(img * nbg).astype(float)
+        return counts * (bg / nbg), bg / math.sqrt(nbg)
+    sigma_noise = bg * contrast / edge_snr
+    return img * bg + rng.normal(0.0, sigma_noise, img.shape), sigma_noise
 
 
 def _blob_attenuation(x, z, n, Q, height, lam):
@@ -251,7 +257,7 @@ def _nice_length(target):
     return 10**exp
 
 
-def _draw_scale_bar(img, px, orientation, maxval):
+def _draw_scale_bar(img, px, orientation):
     """Dark bar + label in the lower-left (apex side) corner, drawn in place."""
     H, W = img.shape
     length = _nice_length(0.2 * W * px)

@@ -104,9 +104,18 @@ import numpy as np
 from scipy import fft as sfft
 
 from pipeline.synth.tem_wave_geometry import TipBody, place_particle, projected_thickness
-from pipeline.synth.tem_wave_optics import (Detector, Optics, band_limit, delocalisation, detect, electron_beta2,
-                                            focal_spread, image_intensity, interaction_constant,
-                                            noise_variance_factor)
+from pipeline.synth.tem_wave_optics import (
+    Detector,
+    Optics,
+    band_limit,
+    delocalisation,
+    detect,
+    electron_beta2,
+    focal_spread,
+    image_intensity,
+    interaction_constant,
+    noise_variance_factor,
+)
 
 __all__ = ["MEAN_INNER_POTENTIAL", "ParticleSpec", "TemWaveParams", "draw_params", "simulate", "simulate_intensity",
            "tip_body", "write_image", "truth_to_json", "main"]
@@ -250,7 +259,7 @@ def _sampling(p):
     return m, dx, pad
 
 
-def _exit_wave_rows(body, particles, p, m, dx, pad, rows, ncols, pot, lam_abs, sigma):
+def _exit_wave_rows(body, particles, p, m, pad, rows, ncols, pot, lam_abs, sigma):
     """Exit wave on grid rows ``rows`` (all ``ncols`` columns) and the material masks there."""
     gr = (rows[:, None] - pad + 0.5) / m - 0.5  # detector row coordinate of each grid point
     gc = (np.arange(ncols)[None, :] - pad + 0.5) / m - 0.5
@@ -295,7 +304,7 @@ def exit_wave(p: TemWaveParams, body=None, particles=None, pad=None):
     masks = {}
     for r0 in range(0, n_r, 256):
         rows = np.arange(r0, min(n_r, r0 + 256), dtype=float)
-        w, mk = _exit_wave_rows(body, particles, p, m, dx, pad, rows, n_c, pot, lam_abs, sigma)
+        w, mk = _exit_wave_rows(body, particles, p, m, pad, rows, n_c, pot, lam_abs, sigma)
         psi[r0:r0 + len(rows)] = w
         for k, v in mk.items():
             masks.setdefault(k, np.zeros((n_r, n_c), bool))[r0:r0 + len(rows)] = v
@@ -587,6 +596,20 @@ def draw_params(seed, apex_particles=None, shank_contamination=None, **fixed) ->
     apex_draws, shank_draws = part_rng.uniform(size=(3, 7)), part_rng.uniform(size=(3, 6))
     d.update(fixed)
     # draws that depend on a (possibly fixed) choice
+    _layer_draws(d, fixed, k1, k2)
+    _detector_draws(d, fixed, b1, b2, b3, b4)
+    _field_draws(d, fixed, field_nm, (r0, r1, r2, r3))
+    if "particles" not in fixed:
+        H, px = d["shape"][0], d["pixel_size"]
+        want_apex = p0 < 0.5 if apex_particles is None else apex_particles
+        want_shank = p1 < 0.5 if shank_contamination is None else shank_contamination
+        d["particles"] = _draw_particles(want_apex, want_shank, p2, p3, p4, apex_draws, shank_draws, H, px)
+    d["seed"] = int(seed)
+    return TemWaveParams(**d)
+
+
+def _layer_draws(d, fixed, k1, k2):
+    """The outer layer's thickness and contrast from the layer kind (unless fixed)."""
     kind = d["layer"]
     if kind not in LAYER_MATERIAL:
         raise ValueError(f"layer must be one of {sorted(LAYER_MATERIAL)}, got {kind!r}")
@@ -595,6 +618,10 @@ def draw_params(seed, apex_particles=None, shank_contamination=None, **fixed) ->
         d["layer_thickness"] = {"none": 0.0, "oxide": 1e-9 + 1e-9 * k1, "DLC": 2e-9 + 18e-9 * k1}[kind]
     if "layer_contrast" not in fixed:
         d["layer_contrast"] = {"none": 0.2, "oxide": 0.2 + 0.3 * k2, "DLC": 0.05 + 0.25 * k2}[kind]
+
+
+def _detector_draws(d, fixed, b1, b2, b3, b4):
+    """Background level, offset and read noise from the bit depth (unless fixed)."""
     bits = d["bits"]
     if "background_level" not in fixed:
         d["background_level"] = (1.02 + 0.18 * b2 if (b1 < 0.15 and bits) else
@@ -603,6 +630,10 @@ def draw_params(seed, apex_particles=None, shank_contamination=None, **fixed) ->
         d["offset"] = {8: 8 * b3, 16: 300 * b3, 0: 0.0}[bits]
     if "read_noise" not in fixed:
         d["read_noise"] = {8: 0.2 + 0.8 * b4, 16: 1.0 + 7.0 * b4, 0: 1.0 + 7.0 * b4}[bits]
+
+
+def _field_draws(d, fixed, field_nm, r):
+    """Image side (a field that holds the tip), R lowered until the tip fits, apex pixel (unless fixed)."""
     px = d["pixel_size"]
     if "shape" not in fixed:
         side_px = int(np.clip(round(field_nm * 1e-9 / px / 32) * 32, 256, 1024))
@@ -614,29 +645,29 @@ def draw_params(seed, apex_particles=None, shank_contamination=None, **fixed) ->
         while not _fits(d, W * px) and d["R"] > 3e-9:
             d["R"] *= 0.9
     if "apex_px" not in fixed:
+        r0, r1, r2, r3 = r
         row = (0.6 + 0.2 * r0) * H + (r1 - 0.5)
         d["apex_px"] = (row if d["orientation"] == "down" else H - 1 - row, (0.4 + 0.2 * r2) * W + (r3 - 0.5))
-    if "particles" not in fixed:
-        parts = []
-        side = 0.0 if p2 < 0.5 else 180.0
-        want_apex = p0 < 0.5 if apex_particles is None else apex_particles
-        want_shank = p1 < 0.5 if shank_contamination is None else shank_contamination
-        if want_apex:  # 1-3 particles 1-5 nm on one flank, 3-20 nm above the apex
-            for a_ in apex_draws[: 1 + int(3 * p3 * 0.999)]:
-                semi = (0.5e-9 + 2e-9 * a_[1], 0.5e-9 + 2e-9 * a_[2])
-                semi = semi + ((0.8 + 0.4 * a_[3]) * 0.5 * (semi[0] + semi[1]),)
-                parts.append(ParticleSpec(height=3e-9 + 17e-9 * a_[0], azimuth_deg=side + (a_[4] - 0.5) * 40.0,
-                                          semi_axes=semi, sink=0.3 + 0.6 * a_[5], tilt_deg=180.0 * a_[6], kind="apex"))
-        if want_shank:  # 1-3 blobs 6-24 nm far up the shank, either flank
-            z_hi = max(40e-9, 0.8 * H * px)
-            for a_ in shank_draws[: 1 + int(3 * p4 * 0.999)]:
-                semi = (3e-9 + 9e-9 * a_[1], 3e-9 + 9e-9 * a_[2], 3e-9 + 9e-9 * a_[3])
-                az = (0.0 if a_[4] < 0.5 else 180.0) + (a_[5] - 0.5) * 60.0
-                parts.append(ParticleSpec(height=30e-9 + (z_hi - 30e-9) * a_[0], azimuth_deg=az, semi_axes=semi,
-                                          sink=0.5, tilt_deg=0.0, kind="shank"))
-        d["particles"] = tuple(parts)
-    d["seed"] = int(seed)
-    return TemWaveParams(**d)
+
+
+def _draw_particles(want_apex, want_shank, p2, p3, p4, apex_draws, shank_draws, H, px):
+    """Particles near the apex (on one flank) and blobs up the shank, as ParticleSpec."""
+    parts = []
+    side = 0.0 if p2 < 0.5 else 180.0
+    if want_apex:  # 1-3 particles 1-5 nm on one flank, 3-20 nm above the apex
+        for a_ in apex_draws[: 1 + int(3 * p3 * 0.999)]:
+            semi = (0.5e-9 + 2e-9 * a_[1], 0.5e-9 + 2e-9 * a_[2])
+            semi = semi + ((0.8 + 0.4 * a_[3]) * 0.5 * (semi[0] + semi[1]),)
+            parts.append(ParticleSpec(height=3e-9 + 17e-9 * a_[0], azimuth_deg=side + (a_[4] - 0.5) * 40.0,
+                                      semi_axes=semi, sink=0.3 + 0.6 * a_[5], tilt_deg=180.0 * a_[6], kind="apex"))
+    if want_shank:  # 1-3 blobs 6-24 nm far up the shank, either flank
+        z_hi = max(40e-9, 0.8 * H * px)
+        for a_ in shank_draws[: 1 + int(3 * p4 * 0.999)]:
+            semi = (3e-9 + 9e-9 * a_[1], 3e-9 + 9e-9 * a_[2], 3e-9 + 9e-9 * a_[3])
+            az = (0.0 if a_[4] < 0.5 else 180.0) + (a_[5] - 0.5) * 60.0
+            parts.append(ParticleSpec(height=30e-9 + (z_hi - 30e-9) * a_[0], azimuth_deg=az, semi_axes=semi,
+                                      sink=0.5, tilt_deg=0.0, kind="shank"))
+    return tuple(parts)
 
 
 # ----------------------------------------------------------------------------- files

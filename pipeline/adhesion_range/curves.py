@@ -1,0 +1,84 @@
+"""ln W_A(h) curves of the intervals and percentiles of per-sample estimates."""
+from __future__ import annotations
+
+import numpy as np
+
+CI_PCTS = (2.5, 16.0, 50.0, 84.0, 97.5)
+
+
+def ln_positive(x):
+    """ln x where x is finite and > 0, NaN elsewhere."""
+    x = np.asarray(x, float)
+    out = np.full(x.shape, np.nan)
+    ok = np.isfinite(x) & (x > 0)
+    out[ok] = np.log(x[ok])
+    return out
+
+
+class LawCurves:
+    """ln W_A(h) of every interval for one law of an inversion (``load_inversion``): central
+    (H,) and Monte-Carlo samples (S, H), computed once per interval."""
+
+    def __init__(self, inv: dict, law: str):
+        self._intervals = inv["intervals"]
+        self._law = law
+        self._cache = {}
+
+    def __call__(self, nm: str):
+        if nm not in self._cache:
+            d = self._intervals[nm]["laws"][self._law]
+            self._cache[nm] = (ln_positive(d["W_A"]), ln_positive(d["W_A_samples"]))
+        return self._cache[nm]
+
+
+def nanvar_cols(y):
+    """Variance (ddof 1) of every column over its finite values (NaN with fewer than 2)."""
+    fin = np.isfinite(y)
+    cnt = fin.sum(axis=0)
+    yz = np.where(fin, y, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = yz.sum(axis=0) / cnt
+        v = (np.where(fin, (y - m) ** 2, 0.0)).sum(axis=0) / (cnt - 1)
+    return np.where(cnt > 1, v, np.nan)
+
+
+def wmean_ln(Y_list, var_list):
+    """Inverse-variance weighted mean of ln W curves (weights per h, shared by samples)."""
+    Y = np.stack(Y_list, axis=-1)
+    V = np.stack(var_list, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(np.isfinite(V) & (V > 0), 1.0 / V, 0.0)
+    if np.all(w.sum(axis=-1) == 0):
+        w = np.ones_like(V)
+    w = np.where(w.sum(axis=-1, keepdims=True) > 0, w, 1.0)
+    w = w / w.sum(axis=-1, keepdims=True)
+    return np.sum(Y * w, axis=-1)
+
+
+def first_finite(a):
+    """The first finite value of every row (inf where a row has none)."""
+    fin = np.isfinite(a)
+    idx = np.argmax(fin, axis=1)
+    v = a[np.arange(a.shape[0]), idx]
+    return np.where(fin.any(axis=1), v, np.inf)
+
+
+def censored_percentiles(values, side, pcts):
+    """Percentiles of per-sample estimates with censoring at the grid edges.
+
+    Samples with no estimate inside the grid count as -inf (side -1) or +inf (+1);
+    samples with neither are dropped.  A percentile that falls on a censored sample is
+    NaN (the interval is open on that side).
+    """
+    v = np.asarray(values, float).copy()
+    v[np.isnan(v) & (side < 0)] = -np.inf
+    v[np.isnan(v) & (side > 0)] = np.inf
+    v = v[~np.isnan(v)]
+    if v.size == 0:
+        return np.full(len(pcts), np.nan)
+    v.sort()
+    out = []
+    for p in pcts:
+        k = int(np.clip(np.ceil(p / 100.0 * v.size) - 1, 0, v.size - 1))  # inverted-CDF
+        out.append(v[k] if np.isfinite(v[k]) else np.nan)
+    return np.array(out)
