@@ -5,20 +5,48 @@ from __future__ import annotations
 import numpy as np
 
 MIN_SAMPLES_FOR_COV = 20
+SAMPLE_CHUNK = 8192  # Monte-Carlo samples per chunk of the per-sample GLS (memory ~ chunk x H x I)
 
 
-def sample_covariances(Y):
+def sample_covariances(Y, chunk=None):
     """Per-h covariance (H, I, I) of Y (S, H, I) over the samples with all I finite at that h
-    (vectorised; NaN where fewer than max(MIN_SAMPLES_FOR_COV, I + 2) samples are)."""
-    _, _, I = Y.shape
+    (vectorised; NaN where fewer than max(MIN_SAMPLES_FOR_COV, I + 2) samples are).
+
+    More than ``chunk`` samples (default ``SAMPLE_CHUNK``) are summed chunk by chunk, two passes
+    (mean, then the centred products), so that the memory does not grow with the Monte Carlo."""
+    S, H, I = Y.shape
+    chunk = SAMPLE_CHUNK if chunk is None else int(chunk)
     ok = np.all(np.isfinite(Y), axis=2)  # (S, H)
     n = ok.sum(axis=0)
-    Yz = np.where(ok[..., None], Y, 0.0)
+    if S <= chunk:
+        Yz = np.where(ok[..., None], Y, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean = Yz.sum(axis=0) / n[:, None]
+        return _centred_products(Yz, ok, mean, n, I)
+    total = np.zeros((H, I))
+    for a in range(0, S, chunk):
+        total += np.where(ok[a:a + chunk, :, None], Y[a:a + chunk], 0.0).sum(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        mean = Yz.sum(axis=0) / n[:, None]
+        mean = total / n[:, None]
+    C = np.zeros((H, I, I))
+    for a in range(0, S, chunk):
+        C += _centred_products(np.where(ok[a:a + chunk, :, None], Y[a:a + chunk], 0.0), ok[a:a + chunk], mean, None, I)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        C /= (n - 1)[:, None, None]
+    C[n < max(MIN_SAMPLES_FOR_COV, I + 2)] = np.nan
+    return C
+
+
+def _centred_products(Yz, ok, mean, n, I):
+    """sum over samples of (y - mean)(y - mean)^T per h, divided by n - 1 when ``n`` is given."""
+    with np.errstate(invalid="ignore"):
         D = np.where(ok[..., None], Yz - mean[None], 0.0)
-        Dh = np.moveaxis(D, 0, 1)  # (H, S, I): one batched matrix product per h
-        C = np.matmul(np.swapaxes(Dh, 1, 2), Dh) / (n - 1)[:, None, None]
+    Dh = np.moveaxis(D, 0, 1)  # (H, S, I): one batched matrix product per h
+    C = np.matmul(np.swapaxes(Dh, 1, 2), Dh)
+    if n is None:
+        return C
+    with np.errstate(divide="ignore", invalid="ignore"):
+        C = C / (n - 1)[:, None, None]
     C[n < max(MIN_SAMPLES_FOR_COV, I + 2)] = np.nan
     return C
 
@@ -47,8 +75,18 @@ def cov_inverse(Y, ridge=1e-10, tau2=0.0):
     return precision(sample_covariances(Y), ridge, tau2)
 
 
-def gls_chi2(Y, P):
-    """Common-mean GLS at every h: Y (..., H, I), P (H, I, I) -> (mean, chi2) (..., H)."""
+def gls_chi2(Y, P, chunk=None):
+    """Common-mean GLS at every h: Y (..., H, I), P (H, I, I) -> (mean, chi2) (..., H).
+
+    Samples (Y of shape (S, H, I)) are taken ``chunk`` (default ``SAMPLE_CHUNK``) at a time."""
+    chunk = SAMPLE_CHUNK if chunk is None else int(chunk)
+    if Y.ndim == 3 and Y.shape[0] > chunk:
+        parts = [_gls_chi2(Y[a:a + chunk], P) for a in range(0, Y.shape[0], chunk)]
+        return np.concatenate([m for m, _ in parts]), np.concatenate([c for _, c in parts])
+    return _gls_chi2(Y, P)
+
+
+def _gls_chi2(Y, P):
     fin = np.isfinite(Y)
     Yz = np.where(fin, Y, 0.0)
     # a[..., h, i] = sum_j P[h, i, j] Y[..., h, j], as one batched matrix product per h

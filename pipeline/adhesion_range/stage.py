@@ -27,7 +27,10 @@ def run_adhesion_range(inversion_h5, out_h5, report_csv=None, fig_dir=None, *, t
     t0 = time.perf_counter()
     inv = load_inversion(inversion_h5)
     tip = tip or inv.get("tip") or ""
-    results = {law: analyse_law(inv, law, inconsistency) for law in inv["laws"]}
+    results = {}
+    for j, law in enumerate(inv["laws"]):
+        results[law] = analyse_law(inv, law, inconsistency)
+        log.info("%s: law %d/%d (%s) analysed, %.1f s so far", tip, j + 1, len(inv["laws"]), law, time.perf_counter() - t0)
     for law, res in results.items():
         _log_law(tip, law, res)
     write_range_h5(out_h5, inv, results, tip=tip, source=str(inversion_h5))

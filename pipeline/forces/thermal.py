@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import curve_fit
 
 K_B = 1.380649e-23  # J/K
 SHAPE_FACTOR = {"rectangular": 0.817, "v-shaped": 0.764}
@@ -76,6 +75,8 @@ def fit_sho(f, P, *, fmin=None, fmax=None, n_avg=0) -> SHOFit:
     model = lambda f, a, b, c, d: _model(f, a, b, c, d, scale)  # noqa: E731
     p = np.array([np.log(f0), np.log(Q0), np.log(max(msq0, 1e-300)), white / scale])
     sigma = np.maximum(Pw, 1e-300)
+    from scipy.optimize import curve_fit  # only a thermal calibration needs it: imported here, not at start-up
+
     for _ in range(4):
         p, cov = curve_fit(model, fw, Pw, p0=p, sigma=sigma, absolute_sigma=n_avg > 0, maxfev=20000)
         sigma = np.maximum(model(fw, *p), 1e-300) / np.sqrt(max(n_avg, 1))

@@ -69,6 +69,8 @@ def run_inversion(
         results[nm] = {"n_used": shape.n, "ln_Q_used": shape.ln_Q, "n_flag": shape.n_flag, "draws": dr, "notes": notes,
                        "shape_model": shape.model,
                        "laws": _solve_laws(laws, shape, forces[nm], dr, sysd, E_star, h, h[mc_idx], solver_mode, exact)}
+        log.info("%s: interval %d/%d (%s) solved for %d laws x %d Monte-Carlo samples, %.1f s so far",
+                 tip, i + 1, len(names), nm, len(laws), n_samples, time.perf_counter() - t0)
 
     settings = {"tip": tip, "solver_mode": solver_mode, "laws": laws, "mc_samples": n_samples, "seed": seed,
                 "E_star": E_star, "u_E_star": u_E_star, "exact": exact}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import brentq
 
 from . import _validate as V
 from .mdn import pulloff_mdn_exact
@@ -33,6 +32,8 @@ def lambda_boundary_solved(n, tol=0.05):
     |F_MDn - F_rigid| / F_MDn = ``tol`` (5 % in the paper), by Brent's method in log Lambda
     on the direct M-D-n solve.  Compare with :func:`lambda_boundary` (Eq. 13).
     """
+    from scipy.optimize import brentq  # a check, not a stage's work: kept out of the stages' start-up
+
     n = V.exponent(n)
     out = np.empty(n.shape)
     lo, hi = np.log(V.LAMBDA_MIN), np.log(V.LAMBDA_MAX)
