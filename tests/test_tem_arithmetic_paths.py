@@ -51,8 +51,9 @@ def fit_cases() -> dict:
                     reason="already on the second arithmetic path")
 def test_tem_fit_is_the_same_on_a_second_arithmetic_path():
     here = fit_cases()
-    env = {**os.environ, **ALT_PATH}
     root = Path(__file__).resolve().parents[1]
+    # this checkout's pipeline (the venv may hold an editable install of another checkout)
+    env = {**os.environ, **ALT_PATH, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.run([sys.executable, str(Path(__file__).resolve())], env=env, cwd=root,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]

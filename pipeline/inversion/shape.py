@@ -36,7 +36,8 @@ REFERENCE_N_SIGMA = 2.0
 # sigma_n above which the image hardly constrains the shape (said in the notes).
 SHAPE_POORLY_DEFINED_SIGMA_N = 0.2
 # Stage-2 fit flags that make an interval unusable (its fit is not a trustworthy tip shape).
-UNUSABLE_FIT_FLAGS = frozenset({"n_below_1.5", "not_converged", "n_at_bound", "residual_above_pixel", "few_points"})
+UNUSABLE_FIT_FLAGS = frozenset({"n_below_1.5", "not_converged", "n_at_bound", "residual_above_pixel", "few_points",
+                                "edge_turns_back"})
 USABLE_N_FLAGS = ("ok", "n_clipped_to_2")
 
 

@@ -112,7 +112,8 @@ def ideal_fit(truth, fit_height=6e-9, spacing=0.05e-9):
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xz, axis=0).T))])
     si = np.arange(0.0, s[-1], spacing)
     x, z = np.interp(si, s, xz[:, 0]), np.interp(si, s, xz[:, 1])
-    return fit_power_law(np.abs(x), z, fit_height, groups=np.where(x < 0, -1, 1))
+    side = np.where(x < 0, -1, 1)
+    return fit_power_law(np.abs(x), z, fit_height, groups=side, flank=side)
 
 
 def sigma_n(fit):
