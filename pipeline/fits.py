@@ -197,6 +197,11 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     sys_px = 0.0 if image_chi2_red is None or not np.isfinite(image_chi2_red) else \
         EDGE_SYSTEMATIC_PX * min(1.0, float(np.sqrt(max(float(image_chi2_red) - 1.0, 0.0))))
 
+    pre = []  # notes known before the fit
+    if edge_cov is not None and not np.all(np.isfinite(edge_cov)):
+        edge_cov = None
+        pre.append("the silhouette fit gave no finite edge covariance: sigma_n from the residual scatter")
+
     def sub(keep):
         out = dict(groups=None if groups is None else np.asarray(groups)[keep],
                    flank=None if flank is None else np.asarray(flank)[keep])
@@ -206,10 +211,12 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
 
     full = np.ones(r.size, bool)
     if not screen or flank is None:
-        return _fit_power_law(r, z, **args, **sub(full), systematic_px=sys_px)
+        fit = _fit_power_law(r, z, **args, **sub(full), systematic_px=sys_px)
+        fit.notes = pre + fit.notes
+        return fit
     side = np.where(np.asarray(flank) < 0, -1, 1)
     win = np.isfinite(r) & np.isfinite(z) & (z <= fit_height)
-    notes, flags = [], []
+    notes, flags = list(pre), []
     # contamination first, against a robust fit (a particle hanging below the face would otherwise
     # make the face above it look turned back)
     scale = max(0.05e-9, 0.25 * (pixel_size or 0.0))

@@ -177,3 +177,67 @@ def test_edge_covariance_propagation_matches_monte_carlo():
     corr_emp = emp[0, 1] / np.sqrt(emp[0, 0] * emp[1, 1])
     corr = fit0.cov_n_lnQ[0, 1] / (fit0.sigma_n * fit0.sigma_lnQ)
     assert corr == pytest.approx(corr_emp, abs=0.05)
+
+
+def _two_flanks(n=4.0, R=20 * NM, noise=0.03 * NM, seed=1, e=0.0):
+    r, z, _ = _profile(n, R, npts=150, noise=noise, seed=seed)
+    rl, zl, _ = _profile(n, R, npts=150, noise=noise, seed=seed + 1)
+    side = np.r_[-np.ones(rl.size), np.ones(r.size)]
+    rr = np.r_[rl * (1 - e), r * (1 + e)]
+    return rr, np.r_[zl, z], side
+
+
+def test_particle_on_one_flank_is_left_out_and_named():
+    """A 0.6 nm bump on the right flank 2-3 nm above the apex (the left flank clean): the run is
+    left out, the note names the flank and heights, and n is that of the clean profile."""
+    r, z, side = _two_flanks()
+    bump = (side > 0) & (z > 2 * NM) & (z < 3 * NM)
+    r_b = np.where(bump, r + 0.6 * NM * np.sin(np.pi * (z - 2 * NM) / NM) ** 2, r)
+    clean = fit_power_law(r, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side)
+    f = fit_power_law(r_b, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side)
+    naive = fit_power_law(r_b, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side, screen=False)
+    assert any("contamination on the right flank" in s for s in f.notes), f.notes
+    assert abs(f.n - clean.n) < 0.25 * abs(naive.n - clean.n)
+    assert not f.flags
+
+
+def test_edge_that_turns_back_is_left_out_or_flagged():
+    """Edge points that curl back inwards (radius shrinking with height) are never fitted: a few
+    are left out with a note; most of the window turning back makes the fit unusable."""
+    r, z, side = _two_flanks()
+    back = (side < 0) & (z > 4 * NM) & (z < 5 * NM)
+    r_b = np.where(back, r - 2.0 * (z - 4 * NM), r)
+    f = fit_power_law(r_b, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side)
+    assert any("edge turns back" in s for s in f.notes) and "edge_turns_back" not in f.flags
+    assert abs(f.n - 4.0) < 0.05
+    r_w = np.where(z > 1 * NM, np.maximum(r[0], r.max() - r), r)  # the whole window curls back
+    g = fit_power_law(r_w, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side)
+    assert "edge_turns_back" in g.flags
+
+
+def test_model_misfit_terms_widen_sigma_n_only_where_the_image_says_so():
+    """chi2_red <= 1 (the image is the edge model's) and agreeing flanks: sigma_n as without the
+    terms; chi2_red 10: a 1 px smooth edge error per flank widens it; flanks fitted to different
+    n: their half-difference enters."""
+    r, z, side = _two_flanks()
+    base = fit_power_law(r, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side, image_chi2_red=1.0)
+    off = fit_power_law(r, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side)
+    wide = fit_power_law(r, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side, image_chi2_red=10.0)
+    assert base.sigma_n == pytest.approx(off.sigma_n, rel=1e-9)
+    assert wide.sigma_n > 3 * base.sigma_n and any("reduced chi^2" in s for s in wide.notes)
+    rl, zl, _ = _profile(3.5, 20 * NM, npts=150, noise=0.03 * NM, seed=7)
+    r2, z2 = np.r_[rl, r[side > 0]], np.r_[zl, z[side > 0]]
+    s2 = np.r_[-np.ones(rl.size), np.ones((side > 0).sum())]
+    d = fit_power_law(r2, z2, 6 * NM, pixel_size=0.2 * NM, groups=s2, flank=s2)
+    assert d.flank_n is not None and d.sigma_n >= 0.5 * abs(d.flank_n[0] - d.flank_n[1])
+    assert any("flanks disagree" in s for s in d.notes)
+
+
+def test_non_finite_edge_covariance_falls_back_to_the_residual_scatter():
+    r, z, side = _two_flanks()
+    basis = np.ones((r.size, 1))
+    normal = np.column_stack([np.ones(r.size), np.zeros(r.size)])
+    f = fit_power_law(r, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side, edge_basis=basis,
+                      edge_cov=np.full((1, 1), np.nan), normal_rz=normal)
+    assert np.isfinite(f.sigma_n) and f.sigma_n > 0
+    assert any("no finite edge covariance" in s for s in f.notes)
