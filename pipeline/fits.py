@@ -144,13 +144,14 @@ def _ess_factor(res, groups):
 
 
 # Edge error the image model does not know (Fresnel fringes, a layer, the detector): where the
-# silhouette fit's reduced chi^2 says the image is not the model's (chi2_red > 1), a smooth offset
-# of each flank's edge along its normal, of SD EDGE_SYSTEMATIC_PX x min(1, sqrt(chi2_red - 1))
-# pixels in each of the Legendre components 1, t, t^2 (t = 2 z / h - 1) over the fit window, the
-# two flanks independent.  1 px: on wave-optical images (benchmarks/bench_tem_independent.py)
-# the Beer-Lambert edge lies a median 0.5 nm (1-5 px) off the true silhouette; 1 px is the
-# smallest value that covers n in >= 90 % of them.  An image the model describes (chi2_red ~ 1)
-# keeps the noise-only covariance.
+# silhouette fit's reduced chi^2 says the image is not the model's (chi2_red > 1 + 3 sqrt(2/N), N
+# its pixels), a smooth offset of each flank's edge along its normal, of SD EDGE_SYSTEMATIC_PX x
+# min(1, sqrt(chi2_red - 1 - 3 sqrt(2/N))) pixels in each of the Legendre components 1, t, t^2
+# (t = 2 z / h - 1) over the fit window, the two flanks independent.  On wave-optical images
+# (benchmarks/bench_tem_independent.py) the Beer-Lambert edge lies a median 0.5 nm (1-5 px) off the
+# true silhouette; of 0.5, 0.75 and 1 px (83, 87, 92 % of n within 2 sigma_n) 1 px is the smallest
+# that reaches 90 % (set on that grid, not derived).  An image the model describes keeps the
+# noise-only covariance.
 EDGE_SYSTEMATIC_PX = 1.0
 EDGE_SYSTEMATIC_DEGREE = 2
 
@@ -185,7 +186,7 @@ def edge_covariance_of_params(jac, dres_doffset, basis, cov_c):
 
 def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_scale=1e-9,
                   edge_basis=None, edge_cov=None, normal_rz=None, fixed_n=None, flank=None, screen=True,
-                  image_chi2_red=None) -> PowerLawFit:
+                  image_chi2_red=None, image_n_pixels=None) -> PowerLawFit:
     """``_fit_power_law`` (Eq. 1) on the profile points, screened first where both flanks are given
     (``screen``): points where the edge turns back (the radius shrinks with height) and runs
     that stand out of one flank only (contamination: the flanks' mirror symmetry broken) are
@@ -194,8 +195,11 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     r = np.abs(np.asarray(r, float))
     z = np.asarray(z, float)
     args = dict(fit_height=fit_height, S=S, pixel_size=pixel_size, r_scale=r_scale, fixed_n=fixed_n)
-    sys_px = 0.0 if image_chi2_red is None or not np.isfinite(image_chi2_red) else \
-        EDGE_SYSTEMATIC_PX * min(1.0, float(np.sqrt(max(float(image_chi2_red) - 1.0, 0.0))))
+    sys_px = 0.0
+    if image_chi2_red is not None and np.isfinite(image_chi2_red):
+        # chi2_red of a model-true image scatters by sqrt(2 / N) about 1: 3 SD of that are noise
+        allow = 3.0 * np.sqrt(2.0 / image_n_pixels) if image_n_pixels else 0.0
+        sys_px = EDGE_SYSTEMATIC_PX * min(1.0, float(np.sqrt(max(float(image_chi2_red) - 1.0 - allow, 0.0))))
 
     pre = []  # notes known before the fit
     if edge_cov is not None and not np.all(np.isfinite(edge_cov)):
@@ -243,7 +247,7 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     return fit
 
 
-FLANK_DISAGREEMENT = True  # add ((n_left - n_right) / 2)^2 to var(n) (``_add_flank_disagreement``)
+FLANK_DISAGREEMENT = True  # add ((n_left - n_right) / 2)^2 beyond noise to var(n) (``_add_flank_disagreement``)
 FLANK_MIN_POINTS = 12
 
 
@@ -251,9 +255,10 @@ def _add_flank_disagreement(fit, r, z, side, use, args, notes):
     """The two flanks are two measurements of one n; the half-difference of their separate fits
     estimates the error of the combined n also where the edge model is wrong on one flank or
     both (a Fresnel fringe, a particle, a layer, wear the flank-wise scale does not describe),
-    which the edge covariance does not know.  Its square is added to var(n) (with the ln Q it
-    drags along at fixed r_h), and the notes say so where it dominates."""
-    ns = []
+    which the edge covariance does not know.  Its square, less what the flanks' own sigma_n
+    explain, is added to var(n) (with the ln Q it drags along at fixed r_h), and the notes say so
+    where it dominates."""
+    ns, vs = [], []
     for s_ in (-1, 1):
         m = use & (side == s_)
         if m.sum() < FLANK_MIN_POINTS:
@@ -265,7 +270,9 @@ def _add_flank_disagreement(fit, r, z, side, use, args, notes):
         if f1.flags:
             return
         ns.append(f1.n)
+        vs.append(f1.sigma_n ** 2)
     d2 = 0.25 * (ns[0] - ns[1]) ** 2
+    d2 = max(0.0, d2 - 0.25 * (vs[0] + vs[1]))  # only what the flanks' own noise does not explain
     n = fit.n
     a = (fit.ln_Q + np.log(n) + np.log(fit.fit_height)) / n - 1.0 / n  # d ln Q / d n at fixed r_h
     t = np.array([1.0, a])
@@ -484,10 +491,11 @@ def fit_tip_profile(profile, fit_height=6e-9, S=1.0, which="both") -> PowerLawFi
     if profile.offset_basis is not None:
         edge = dict(edge_basis=profile.offset_basis[i], edge_cov=profile.offset_cov, normal_rz=profile.normal_rz[i])
     both = which == "both"
-    chi2 = (profile.edge_model or {}).get("global_chi2_red")
+    em = profile.edge_model or {}
+    chi2, npx = em.get("global_chi2_red"), em.get("global_n_pixels")
     return fit_power_law(np.abs(profile.x[i]), profile.z[i], fit_height, S, pixel_size=profile.pixel_size,
                          groups=profile.flank[i] if both else None, flank=profile.flank[i] if both else None,
-                         image_chi2_red=chi2 if both else None, **edge)
+                         image_chi2_red=chi2 if both else None, image_n_pixels=npx, **edge)
 
 
 # ----------------------------------------------------------------------------- stage
@@ -510,6 +518,7 @@ def _read_profile(profile_h5):
             out["flank"] = g["combined"]["flank"][()]
             em = f.get("edge_model")
             out["chi2_red"] = float(em["chi2_reduced"][()]) if em is not None and "chi2_reduced" in em else None
+            out["n_pixels"] = float(em["n_pixels"][()]) if em is not None and "n_pixels" in em else None
             px = float(f["image"]["pixel_size"][()])
             return out, px
     except FileNotFoundError:
@@ -564,7 +573,8 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
             both = name == "combined"
             fits[name] = fit_power_law(r, z, fit_height, S, pixel_size=px, groups=prof["flank"] if both else None,
                                        flank=prof["flank"] if both else None,
-                                       image_chi2_red=prof["chi2_red"] if both else None, **(edge or {}))
+                                       image_chi2_red=prof["chi2_red"] if both else None,
+                                       image_n_pixels=prof["n_pixels"], **(edge or {}))
         except FitError as exc:
             if name == "combined":
                 raise FitError(f"{profile_h5}: {exc}") from None
@@ -582,7 +592,8 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
         r, z, edge = prof["combined"]
         try:
             para = fit_power_law(r, z, fit_height, S, pixel_size=px, groups=prof["flank"], flank=prof["flank"],
-                                 fixed_n=2.0, image_chi2_red=prof["chi2_red"], **(edge or {}))
+                                 fixed_n=2.0, image_chi2_red=prof["chi2_red"], image_n_pixels=prof["n_pixels"],
+                                 **(edge or {}))
             _write_fit(h5io.create_group(f, "fit_n2", model="paraboloid z = z0 + r^2/(2R): n held at 2, Q = R"), para)
         except FitError:
             h5io.create_group(f, "fit_n2", failed=True)

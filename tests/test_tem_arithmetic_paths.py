@@ -9,11 +9,11 @@ arithmetic path (OpenBLAS's generic Prescott kernels, numpy without its AVX2/AVX
 loops); the results must agree to a small fraction of every test tolerance (0.1 in n,
 0.02 on clean images).  Measured on AMD EPYC: n agrees within 0.0026 (clean coated) and
 0.0002 (the others); sigma_n within 1 % where the image
-has noise (25 % on the noise-free coated image, whose sigma_n is model error only).  With the
-flank-disagreement term of stage 2 (the half-difference of n fitted on each flank alone, which
-follows each flank's edge more closely than the combined n does), measured again on AMD EPYC: n within
-0.0022 / 0.0004, sigma_n within 2.3 % (oxide n 4, SNR 20; 0.3 % without the term) and 18 % (clean
-coated), against the 10 % and 35 % the test allows.  ``make test`` also runs the TEM tests on that
+has noise (25 % on the noise-free coated image, whose sigma_n is model error only).  With stage 2's
+flank-disagreement term (the part of the flanks' half-difference in n their own noise does not
+explain), measured again on AMD EPYC: n within 0.0022 (clean coated) and 0.0004, sigma_n within
+0.5 % (oxide n 4, SNR 20), 1.4 % (clean oxide n 6) and 18 % (clean coated), against the 10 % and
+35 % the test allows.  ``make test`` also runs the TEM tests on that
 path.
 """
 from __future__ import annotations
