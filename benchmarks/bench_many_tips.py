@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import subprocess
 import sys
 import tempfile
 import time
@@ -23,9 +22,9 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 sys.path.insert(0, str(Path(__file__).parent))
+from bench_pipeline_run import run_snakemake  # noqa: E402
 from bench_startup import ENTRIES, entry_module, wall_time  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,17 +74,7 @@ def main():
         t0 = time.perf_counter()
         tips_dir = make_tips(tmp, args.tips, args.intervals)
         t_gen = time.perf_counter() - t0
-        cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
-        cfg.update(tips_dir=str(tips_dir), results_dir=str(tmp / "results"))
-        (tmp / "config.yaml").write_text(yaml.safe_dump(cfg))
-        cmd = [sys.executable, "-m", "snakemake", "--cores", str(args.cores), "--quiet", "all", "--configfile",
-               str(tmp / "config.yaml")]
-        t0 = time.perf_counter()
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        if proc.returncode != 0:
-            print(proc.stdout[-3000:], proc.stderr[-3000:], sep="\n")
-            raise SystemExit(f"snakemake failed (exit {proc.returncode})")
+        wall = run_snakemake(tmp / "results", args.cores, {"tips_dir": str(tips_dir)})
         times = job_times(tmp / "results")
     total = sum(s for _, s in times.values())
     jobs = sum(n for n, _ in times.values())
