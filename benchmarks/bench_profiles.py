@@ -54,7 +54,7 @@ def tip_b_images():
 
 
 def bench_tip_b():
-    from pipeline.fits import fit_tip_profile
+    from pipeline.fits.profile_fit import fit_tip_profile
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import TemImage
     from pipeline.tem.truth import force_errors, profile_errors

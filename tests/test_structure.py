@@ -123,7 +123,7 @@ def test_no_stage_imports_the_synthetic_data():
 # rewritten (silhouette_fit split, fits/ package) and forces/pulloff.py is being changed; their
 # long functions go with those changes (then their entries here go).
 MAX_FUNCTION_LINES = 60
-LONG_FUNCTIONS_LEFT = ("pipeline/tem/", "pipeline/fits.py", "pipeline/forces/pulloff.py")
+LONG_FUNCTIONS_LEFT = ("pipeline/tem/", "pipeline/fits/", "pipeline/forces/pulloff.py")
 
 
 def function_lengths():

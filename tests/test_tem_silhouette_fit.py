@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.fits import fit_power_law
+from pipeline.fits.profile_fit import fit_power_law
 from pipeline.synth.tem_image import render_tem_image
 from pipeline.tem.profiles import extract_profile
 from pipeline.tem.reading import TemImage

@@ -266,7 +266,7 @@ def test_grader_on_the_true_silhouette():
     """A profile that IS the true silhouette grades to edge RMS ~ 0 and n as the ideal fit."""
     from types import SimpleNamespace
 
-    from pipeline.fits import fit_power_law
+    from pipeline.fits.profile_fit import fit_power_law
 
     p = draw_params(4, asymmetry=0.0, shape=(256, 256), pixel_size=0.3e-9)
     _, truth = simulate(p)
