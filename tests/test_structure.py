@@ -10,9 +10,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "pipeline"
 # Imports of pipeline.synth outside it that are allowed: the CLI's make-samples (inside the command's
-# function), and the TEM grader pipeline/tem/truth.py, which belongs in pipeline/synth and moves
-# there with the TEM stage's restructuring (then its entry here goes).
-SYNTH_IMPORTS_ALLOWED = {("pipeline.cli", "pipeline.synth.wear_test"), ("pipeline.tem.truth", "pipeline.synth.tem_image")}
+# function).
+SYNTH_IMPORTS_ALLOWED = {("pipeline.cli", "pipeline.synth.wear_test")}
 
 
 def module_names() -> dict:
@@ -96,7 +95,7 @@ def test_no_import_cycle_between_modules():
 
 def test_no_import_cycle_between_stage_packages():
     """pipeline.tem, pipeline.inversion, ...: a package may use another only if that one does not use
-    it back (the allowed TEM grader import left out; it moves with the TEM restructuring)."""
+    it back (the CLI's make-samples import left out)."""
     graph = import_graph()
     edges = {}
     for module, imported in graph.items():

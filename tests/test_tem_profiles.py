@@ -21,7 +21,7 @@ import pytest
 from pipeline.synth.tem_image import render_tem_image, write_tem_tiff
 from pipeline.tem.errors import ApexAtBorderError, NoTipError, TemError
 from pipeline.tem.stage import run_profiles
-from pipeline.tem.truth import evaluate_case
+from pipeline.synth.tem_truth import evaluate_case
 
 NM = 1e-9
 

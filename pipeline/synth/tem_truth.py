@@ -8,6 +8,8 @@ from scipy.spatial import cKDTree
 
 from pipeline.synth.tem_image import outer_radius
 
+HEIGHTS = np.linspace(1e-9, 6e-9, 11)  # default heights h (m) of the pull-off area errors
+
 __all__ = ["profile_errors", "force_errors", "reported_uncertainty", "coating_decision", "evaluate_case"]
 
 
@@ -57,7 +59,7 @@ def profile_errors(profile, truth, height):
                 axis_deg_err=float(ang - truth["rotation_deg"]))
 
 
-def force_errors(n_fit, Q_fit, truth, heights=np.linspace(1e-9, 6e-9, 11)):
+def force_errors(n_fit, Q_fit, truth, heights=HEIGHTS):
     """Relative error of the rigid Dugdale pull-off area pi (n h Q)^(2/n) (Eq. 12) vs truth, per h."""
     from pipeline.fits.power_law import rigid_dugdale_area
 
@@ -66,7 +68,7 @@ def force_errors(n_fit, Q_fit, truth, heights=np.linspace(1e-9, 6e-9, 11)):
     return f_fit / f_true - 1.0
 
 
-def reported_uncertainty(profile, fit, heights=np.linspace(1e-9, 6e-9, 11), fit_height=6e-9):
+def reported_uncertainty(profile, fit, heights=HEIGHTS, fit_height=6e-9):
     """What the pipeline reports as its own uncertainty (SI), to judge an error against.
 
     Returns dict: sigma_n; sigma_force (largest relative SD over ``heights`` of the rigid
