@@ -17,6 +17,7 @@ import numpy as np
 
 from pipeline import h5io
 from pipeline.h5io import read_value, require_group
+from pipeline.tem import io as tem_io
 from pipeline.fits.result import FitError, PowerLawFit
 
 # the flank a fit group holds: group name
@@ -25,28 +26,11 @@ PARABOLOID_GROUP = "fit_n2"
 
 
 def read_profile(profile_h5):
-    """The profile file of stage 1: ({"left"|"right"|"combined": (r, z, edge), "flank", "chi2_red",
-    "n_pixels"}, pixel size)."""
-    import h5py
-
+    """The profile file of stage 1 (``pipeline.tem.io.read_profile``: its layout is spelled there), its
+    errors as FitError naming the file."""
     path = Path(profile_h5)
     try:
-        with h5py.File(path, "r") as f:
-            g = f["profile"]
-            out = {}
-            cov = g["offset_cov"][()] if "offset_cov" in g else None
-            for name in ("left", "right", "combined"):
-                sg = g[name]
-                edge = None
-                if cov is not None and "offset_basis" in sg:
-                    edge = dict(edge_basis=sg["offset_basis"][()], edge_cov=cov, normal_rz=sg["normal_rz"][()])
-                out[name] = (sg["r"][()], sg["z"][()], edge)
-            out["flank"] = g["combined"]["flank"][()]
-            em = f.get("edge_model")
-            out["chi2_red"] = float(em["chi2_reduced"][()]) if em is not None and "chi2_reduced" in em else None
-            out["n_pixels"] = float(em["n_pixels"][()]) if em is not None and "n_pixels" in em else None
-            px = float(f["image"]["pixel_size"][()])
-            return out, px
+        return tem_io.read_profile(path)
     except FileNotFoundError:
         raise FitError(f"{path}: profile file not found") from None
     except (OSError, KeyError) as exc:

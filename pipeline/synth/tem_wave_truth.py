@@ -179,9 +179,9 @@ def evaluate_file(image_path, truth, pixel_size=None, workdir=None, fit_height=6
     from pipeline.fits import FitError
     from pipeline.fits.io import read_fit
     from pipeline.fits.stage import run_fit
+    from pipeline.tem.io import write_profile_h5
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import read_tem_image
-    from pipeline.tem.stage import write_profile_h5
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
