@@ -80,44 +80,16 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
         test["skipped"] = "no room for a layer >= 1.5 px in the single-layer blur"
         return None, 0, test
 
-    def physical(st):
-        _, _, ko, kc, coat = f2.unpack(st.v)
-        return bool(0.1 * kc < ko < 0.8 * kc and coat >= MIN_COAT_PX)
-
     starts = [_coated_start(f1, st1, lim2, t) for t in cands]
-    order = np.argsort([f2.evaluate(v).cost for v in starts])
-    n_it = 0
-    runs = []
-    for j in order[:2]:
-        st, _, _, it = f2.run(starts[j], "full", COAT_START_ITERS, *lim2)
-        n_it += it
-        runs.append(st)
-        if cost1 - st.cost > 3 * COAT_DCHI2 and physical(st):
-            break  # a clear layer from the best-ranked start: the second is not needed
-    st, it = _converge(f2, min(runs, key=lambda r: r.cost), cost1, lim2, max_iter)
-    n_it += it
-    runs.append(st)
-
-    def best_physical():
-        ph = [r for r in runs if physical(r)]
-        return min(ph, key=lambda r: r.cost) if ph else None
-
-    bp = best_physical()
+    order, runs, n_it = _first_runs(f2, starts, cost1, lim2, max_iter)
+    bp = _best_physical(f2, runs)
     gain = cost1 - bp.cost if bp is not None else -np.inf
     if not coat_hint and (bp is None or -3 * COAT_DCHI2 < gain <= COAT_DCHI2):
         # borderline: a layer neither found nor clearly excluded (or none physical yet); a
         # physical layer found worse than the single layer may be a local minimum (the thin
         # oxides missed at coarse pixels and low SNR ended at -13 to -26)
-        for j in order[2:2 + COAT_EXTRA_STARTS]:
-            st, _, _, it = f2.run(starts[j], "full", COAT_START_ITERS, *lim2)
-            n_it += it
-            runs.append(st)
-        nb = best_physical()
-        if nb is not None and (bp is None or nb.cost < bp.cost):
-            st, it = _converge(f2, nb, cost1, lim2, max_iter)
-            n_it += it
-            runs.append(st)
-        bp = best_physical()
+        bp, it = _more_starts(f2, starts, order, runs, bp, cost1, lim2, max_iter)
+        n_it += it
     if coat_hint:
         bp = min(runs, key=lambda r: r.cost)
     if bp is None:
@@ -130,32 +102,86 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
     gain = float(st1.cost - bp.cost)
     # outward shift of the coated model's outer edge relative to the single layer's
     shift = float(np.mean(bp.v[:K] - c1))
-    test.update(dchi2=gain, physical=physical(bp), thickness_px=float(coat2), contrast_ratio=float(ko2 / kc2),
+    test.update(dchi2=gain, physical=_physical(f2, bp), thickness_px=float(coat2), contrast_ratio=float(ko2 / kc2),
                 outer_shift_px=shift)
-    if coat_hint or (gain > COAT_DCHI2 and physical(bp)):
+    if coat_hint or (gain > COAT_DCHI2 and _physical(f2, bp)):
         test["model"] = "coated"
     else:
-        # light layers that fit about as well as none are neither found nor excluded: the
-        # edge may lie as far out as the largest of them puts it
-        def shift_of(r):
-            return float(np.mean(r.v[:K] - c1))
-
-        alike = [r for r in runs if physical(r) and cost1 - r.cost > -COAT_DCHI2 and shift_of(r) > 0.25]
-        if physical(bp) and gain > -COAT_DCHI2 and shift_of(bp) > 0.25:
-            alike.append(bp)
-        if alike:
-            # thicker layers stopped after their start iterations just outside the threshold
-            # may reach it when converged: the largest shift needs them
-            reach = max(shift_of(r) for r in alike)
-            near = [r for r in runs if physical(r) and -3 * COAT_DCHI2 < cost1 - r.cost <= -COAT_DCHI2
-                    and shift_of(r) > reach]
-            for r in sorted(near, key=shift_of, reverse=True)[:2]:
-                st, it = _converge(f2, r, cost1, lim2, max_iter)
-                n_it += it
-                if physical(st) and cost1 - st.cost > -COAT_DCHI2 and shift_of(st) > 0.25:
-                    alike.append(st)
-            far = max(alike, key=shift_of)
-            _, _, ko_f, kc_f, coat_f = f2.unpack(far.v)
-            test.update(ambiguous=True, ambiguous_shift_px=shift_of(far), ambiguous_thickness_px=float(coat_f),
-                        ambiguous_dchi2=float(cost1 - far.cost))
+        n_it += _ambiguous_layer(f2, runs, bp, gain, (c1, K), cost1, lim2, max_iter, test)
     return bp, n_it, test
+
+
+def _physical(f2, st):
+    """A layer that counts: 0.1 < k_o/k_c < 0.8 and thickness >= MIN_COAT_PX."""
+    _, _, ko, kc, coat = f2.unpack(st.v)
+    return bool(0.1 * kc < ko < 0.8 * kc and coat >= MIN_COAT_PX)
+
+
+def _best_physical(f2, runs):
+    ph = [r for r in runs if _physical(f2, r)]
+    return min(ph, key=lambda r: r.cost) if ph else None
+
+
+def _first_runs(f2, starts, cost1, lim2, max_iter):
+    """(order of the starts by cost, runs, iterations): the two best starts get COAT_START_ITERS
+    full LM iterations (the second only if the first is no clear layer), the better is converged."""
+    order = np.argsort([f2.evaluate(v).cost for v in starts])
+    n_it = 0
+    runs = []
+    for j in order[:2]:
+        st, _, _, it = f2.run(starts[j], "full", COAT_START_ITERS, *lim2)
+        n_it += it
+        runs.append(st)
+        if cost1 - st.cost > 3 * COAT_DCHI2 and _physical(f2, st):
+            break  # a clear layer from the best-ranked start: the second is not needed
+    st, it = _converge(f2, min(runs, key=lambda r: r.cost), cost1, lim2, max_iter)
+    n_it += it
+    runs.append(st)
+    return order, runs, n_it
+
+
+def _more_starts(f2, starts, order, runs, bp, cost1, lim2, max_iter):
+    """(best physical run, iterations) after COAT_EXTRA_STARTS more starts (appended to ``runs``),
+    the best physical one converged if it beats ``bp``."""
+    n_it = 0
+    for j in order[2:2 + COAT_EXTRA_STARTS]:
+        st, _, _, it = f2.run(starts[j], "full", COAT_START_ITERS, *lim2)
+        n_it += it
+        runs.append(st)
+    nb = _best_physical(f2, runs)
+    if nb is not None and (bp is None or nb.cost < bp.cost):
+        st, it = _converge(f2, nb, cost1, lim2, max_iter)
+        n_it += it
+        runs.append(st)
+    return _best_physical(f2, runs), n_it
+
+
+def _ambiguous_layer(f2, runs, bp, gain, single, cost1, lim2, max_iter, test):
+    """Light layers that fit about as well as none are neither found nor excluded: the edge may
+    lie as far out as the largest of them puts it (``test`` gets ambiguous_*).  Returns the
+    iterations spent converging near ones."""
+    c1, K = single
+    n_it = 0
+
+    def shift_of(r):
+        return float(np.mean(r.v[:K] - c1))
+
+    alike = [r for r in runs if _physical(f2, r) and cost1 - r.cost > -COAT_DCHI2 and shift_of(r) > 0.25]
+    if _physical(f2, bp) and gain > -COAT_DCHI2 and shift_of(bp) > 0.25:
+        alike.append(bp)
+    if alike:
+        # thicker layers stopped after their start iterations just outside the threshold
+        # may reach it when converged: the largest shift needs them
+        reach = max(shift_of(r) for r in alike)
+        near = [r for r in runs if _physical(f2, r) and -3 * COAT_DCHI2 < cost1 - r.cost <= -COAT_DCHI2
+                and shift_of(r) > reach]
+        for r in sorted(near, key=shift_of, reverse=True)[:2]:
+            st, it = _converge(f2, r, cost1, lim2, max_iter)
+            n_it += it
+            if _physical(f2, st) and cost1 - st.cost > -COAT_DCHI2 and shift_of(st) > 0.25:
+                alike.append(st)
+        far = max(alike, key=shift_of)
+        _, _, ko_f, kc_f, coat_f = f2.unpack(far.v)
+        test.update(ambiguous=True, ambiguous_shift_px=shift_of(far), ambiguous_thickness_px=float(coat_f),
+                    ambiguous_dchi2=float(cost1 - far.cost))
+    return n_it

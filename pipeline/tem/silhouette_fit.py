@@ -100,24 +100,7 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
     pixels of ``flat``."""
     b = int(binning or bin_factor(pixel_size))
     if b > 1:
-        off = 0.5 * (b - 1)
-        gf = fit_silhouette(_bin(np.asarray(flat, float), b), (np.asarray(contour) - off) / b,
-                            TipFrame((frame.apex - off) / b, frame.angle), hpx / b, noise / b,
-                            pixel_size * b, None if coat_hint is None else coat_hint / b, knot_nm, max_iter,
-                            binning=1)
-        gf.points = gf.points * b + off
-        gf.frame = TipFrame(gf.frame.apex * b + off, gf.frame.angle)
-        gf.cov_c = gf.cov_c * b**2
-        gf.sigma_px, gf.coat_px = gf.sigma_px * b, gf.coat_px * b
-        gf.k_outer, gf.k_core = gf.k_outer / b, gf.k_core / b
-        gf.binning = b
-        ct = gf.coating_test
-        for key in ("thickness_px", "outer_shift_px", "ambiguous_shift_px", "ambiguous_thickness_px"):
-            if key in ct:
-                ct[key] *= b
-        if "candidates_px" in ct:
-            ct["candidates_px"] = [t * b for t in ct["candidates_px"]]
-        return gf
+        return _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b)
     flat = np.asarray(flat, float)
     knot_nm = knot_nm if knot_nm is not None else KNOT_NM
     knot = float(np.clip(knot_nm * 1e-9 / pixel_size if pixel_size else 6.0, 4.0, 16.0))
@@ -126,25 +109,75 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
     curve = reference_curve(frame.to_tip(contour), smooth_px=1.5 * knot)
     # noise floor 0.2 % of the background: model error of the forward model (noise-free images)
     prob = _Problem(flat, frame, curve, hpx, max(float(noise or 0.0), 2e-3), knot)
-    K = prob.K
     k_ax = _axis_attenuation(flat, frame, curve)
     k0 = k_ax if np.isfinite(k_ax) and k_ax > 0 else 0.02
     max_coat = 12.0
+    f1, st1, n_it = _single_layer_fit(prob, k0, max_coat, max_iter)
+    fitter, st = f1, st1
+    coat_test = {"model": "single"}
+    if coat_hint and coat_hint > 0.95 * max_coat:
+        # a given layer thicker than the fitted band: its core is outside the fitted pixels,
+        # where the outer layer alone is seen (a thick DLC coating); a coated model would put
+        # a core edge where the image has none
+        coat_test["note"] = (f"the given layer ({coat_hint:.1f} px) is thicker than the fitted band "
+                             f"({max_coat:.0f} px inside the edge): the outer layer is fitted alone")
+        coat_hint = 0.0
+    if coat_hint is None or coat_hint > 0:
+        # 3) coated model: search over the layer thickness, then LM from the best start
+        f2 = _Fitter(prob, coated=True)
+        lim2 = _bounds(prob.K, k0, max_coat, True)
+        st2, it, coat_test = _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter)
+        n_it += it
+        if coat_test["model"] == "coated":
+            fitter, st = f2, st2
+    lim = _bounds(prob.K, k0, max_coat, fitter.coated)
+    st, JTJ, names = fitter.polish(st, *lim)
+    prob.map_c = None
+    return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size)
 
-    def bounds(coated):
-        lb = [-6.0] * K + [np.log(0.25), np.log(k0 * 0.05)]
-        ub = [6.0] * K + [np.log(4.0), np.log(k0 * 20)]
-        ms = [0.6] * K + [0.25, 0.3]
-        if coated:
-            lb += [np.log(k0 * 0.05), np.log(0.5)]
-            ub += [np.log(k0 * 20), np.log(max_coat)]
-            ms += [0.3, 0.25]
-        return np.array(lb), np.array(ub), np.array(ms)
 
+def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b):
+    """``fit_silhouette`` on b x b blocks, its result in the pixels of ``flat``."""
+    off = 0.5 * (b - 1)
+    gf = fit_silhouette(_bin(np.asarray(flat, float), b), (np.asarray(contour) - off) / b,
+                        TipFrame((frame.apex - off) / b, frame.angle), hpx / b, noise / b,
+                        pixel_size * b, None if coat_hint is None else coat_hint / b, knot_nm, max_iter,
+                        binning=1)
+    gf.points = gf.points * b + off
+    gf.frame = TipFrame(gf.frame.apex * b + off, gf.frame.angle)
+    gf.cov_c = gf.cov_c * b**2
+    gf.sigma_px, gf.coat_px = gf.sigma_px * b, gf.coat_px * b
+    gf.k_outer, gf.k_core = gf.k_outer / b, gf.k_core / b
+    gf.binning = b
+    ct = gf.coating_test
+    for key in ("thickness_px", "outer_shift_px", "ambiguous_shift_px", "ambiguous_thickness_px"):
+        if key in ct:
+            ct[key] *= b
+    if "candidates_px" in ct:
+        ct["candidates_px"] = [t * b for t in ct["candidates_px"]]
+    return gf
+
+
+def _bounds(K, k0, max_coat, coated):
+    """(lower, upper bounds, maximum steps) of (c_1..c_K, log sigma, log k_o[, log k_c, log coat])."""
+    lb = [-6.0] * K + [np.log(0.25), np.log(k0 * 0.05)]
+    ub = [6.0] * K + [np.log(4.0), np.log(k0 * 20)]
+    ms = [0.6] * K + [0.25, 0.3]
+    if coated:
+        lb += [np.log(k0 * 0.05), np.log(0.5)]
+        ub += [np.log(k0 * 20), np.log(max_coat)]
+        ms += [0.3, 0.25]
+    return np.array(lb), np.array(ub), np.array(ms)
+
+
+def _single_layer_fit(prob, k0, max_coat, max_iter):
+    """(fitter, state, iterations) of the single-layer model (steps 1 and 2 of ``fit_silhouette``);
+    ``prob`` is rebased on the fitted shape."""
+    K = prob.K
     n_it = 0
     # 1) single layer, uniform offset from the contour + globals, two blur starts
     f1 = _Fitter(prob, coated=False)
-    lim1 = bounds(False)
+    lim1 = _bounds(K, k0, max_coat, False)
     best = None
     for sg in (0.8, 2.0):  # two blur starts, 2 iterations each; the better one goes on
         v = np.concatenate([np.full(K, -1.0), [np.log(sg), np.log(k0)]])
@@ -163,30 +196,10 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
     glob = st1.v[K:]
     K = prob.K
     f1 = _Fitter(prob, coated=False)
-    lim1 = bounds(False)
+    lim1 = _bounds(K, k0, max_coat, False)
     st1, _, _, it = f1.run(np.concatenate([np.zeros(K), glob]), "full", max_iter, *lim1)
     n_it += it
-    fitter, st = f1, st1
-    coat_test = {"model": "single"}
-    if coat_hint and coat_hint > 0.95 * max_coat:
-        # a given layer thicker than the fitted band: its core is outside the fitted pixels,
-        # where the outer layer alone is seen (a thick DLC coating); a coated model would put
-        # a core edge where the image has none
-        coat_test["note"] = (f"the given layer ({coat_hint:.1f} px) is thicker than the fitted band "
-                             f"({max_coat:.0f} px inside the edge): the outer layer is fitted alone")
-        coat_hint = 0.0
-    if coat_hint is None or coat_hint > 0:
-        # 3) coated model: search over the layer thickness, then LM from the best start
-        f2 = _Fitter(prob, coated=True)
-        lim2 = bounds(True)
-        st2, it, coat_test = _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter)
-        n_it += it
-        if coat_test["model"] == "coated":
-            fitter, st = f2, st2
-    lim = bounds(fitter.coated)
-    st, JTJ, names = fitter.polish(st, *lim)
-    prob.map_c = None
-    return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size)
+    return f1, st1, n_it
 
 
 def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None):
