@@ -6,9 +6,9 @@ import pytest
 
 from pipeline.fits.profile_fit import fit_power_law
 from pipeline.synth.tem_image import render_tem_image
+from pipeline.synth.tem_truth import profile_errors
 from pipeline.tem.profiles import extract_profile
 from pipeline.tem.reading import TemImage
-from pipeline.synth.tem_truth import profile_errors
 
 pytestmark = pytest.mark.filterwarnings("error")
 

@@ -11,8 +11,16 @@ import pytest
 from scipy.special import fresnel
 
 from pipeline.synth import tem_wave_optics as opt
-from pipeline.synth.tem_wave import (ParticleSpec, TemWaveParams, draw_params, main, simulate, simulate_intensity,
-                                     tip_body, write_image)
+from pipeline.synth.tem_wave import (
+    ParticleSpec,
+    TemWaveParams,
+    draw_params,
+    main,
+    simulate,
+    simulate_intensity,
+    tip_body,
+    write_image,
+)
 from pipeline.synth.tem_wave_geometry import Particle, TipBody, limacon_chord, projected_thickness
 from pipeline.synth.tem_wave_truth import edge_errors, grade, ideal_fit, tip_frame, true_section_area
 

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import h5io
+from pipeline.fits.result import FitError, PowerLawFit
 from pipeline.h5io import read_value, require_group
 from pipeline.tem import io as tem_io
-from pipeline.fits.result import FitError, PowerLawFit
 
 # the flank a fit group holds: group name
 GROUPS = (("combined", "fit"), ("left", "fit_left"), ("right", "fit_right"))

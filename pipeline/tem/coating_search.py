@@ -2,9 +2,7 @@
 their convergence and the decision whether a light outer layer is seen (``COAT_DCHI2``)."""
 from __future__ import annotations
 
-
 import numpy as np
-
 
 COAT_DCHI2 = 10.0  # chi^2 decrease needed to accept a coating layer (2 extra parameters, p ~ 0.5 %)
 # layer thicknesses (px) tried as starts of the coated fit; a start converges to the layer

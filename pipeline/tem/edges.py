@@ -45,7 +45,7 @@ class CoarseTip:
     bbox: tuple = ((0, 0), (0, 0))  # ((row0, row1), (col0, col1)) full image, tip region
 
 
-class _Fail(Exception):
+class _Fail(Exception):  # noqa: N818 - a control-flow signal inside the stage, worded by its caller
     pass
 
 

@@ -13,8 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.tem.edges import (TipFrame, _Fail, curve_normals, flatten_background, initial_contour, locate_tip,
-                                refine_edges)
+from pipeline.tem.edges import (
+    TipFrame,
+    _Fail,
+    curve_normals,
+    flatten_background,
+    initial_contour,
+    locate_tip,
+    refine_edges,
+)
 from pipeline.tem.errors import ApexAtBorderError, NoTipError
 from pipeline.tem.reading import TemImage
 
@@ -273,6 +280,9 @@ def _extent(x, z, levels, max_gap=4.0):
     return out
 
 
+MAX_AXIS_DEV = np.radians(1.5)  # rad: the mirror axis at most this far from the coarse axis
+
+
 def _mirror_residuals(p, tgt, nrm, tree, sel):
     """Normal distances of the reflected points to the silhouette, and their
     Jacobian w.r.t. (a, t) with the nearest silhouette points held (point-to-line
@@ -321,7 +331,7 @@ def _mirror_line(tgt, nrm, tree, sel, x, z, hpx):
     return p
 
 
-def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
+def _symmetry_frame(pts, frame, hpx, max_dev=MAX_AXIS_DEV):
     """Axis = mirror line of the silhouette: the line about which the reflected edge
     points (up to ``profile_height`` above the lowest point) fall onto the silhouette,
     by Gauss-Newton on their normal distances (at most ``max_dev`` from the starting,

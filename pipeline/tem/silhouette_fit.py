@@ -60,10 +60,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.tem.edges import TipFrame
 from pipeline.tem.coating_search import COAT_DCHI2, _coating_search
-from pipeline.tem.silhouette_model import (KNOT_NM, _axis_attenuation, _bin, _Body, _bspline, _Problem, bin_factor,
-                                          reference_curve)
+from pipeline.tem.edges import TipFrame
+from pipeline.tem.silhouette_model import (
+    KNOT_NM,
+    _axis_attenuation,
+    _bin,
+    _Body,
+    _bspline,
+    _Problem,
+    bin_factor,
+    reference_curve,
+)
 from pipeline.tem.silhouette_solver import _Fitter
 
 __all__ = ["GlobalFit", "fit_silhouette", "reference_curve", "bin_factor", "COAT_DCHI2", "_Body", "_Fitter", "_bspline"]

@@ -3,13 +3,11 @@ B-spline offsets, the body's cross-section tables, the Beer-Lambert image of the
 integration and blur, and the binning of the image."""
 from __future__ import annotations
 
-
 import numpy as np
 from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
 from pipeline.tem.projection import chord, chord_sq, core_radius_sq_table
-
 
 # pixel integration: the projected thickness has a square-root kink at a silhouette, which
 # the midpoint rule samples poorly; pixels whose centre lies within _FINE_PX of a silhouette

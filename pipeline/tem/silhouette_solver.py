@@ -264,7 +264,7 @@ class _Fitter:
         K = self.K
         st = self.evaluate(v)
         JTJ, it, names = None, 0, []
-        for it in range(1, iters + 1):
+        for it in range(1, iters + 1):  # noqa: B007 - it, the iterations done, is returned
             if shape_mode == "full" and self.p.map_stale(st.v[:K], self.unpack(st.v)[4]):
                 self.p.update_pixel_map(st.v[:K], self.unpack(st.v)[4])
                 # the supersampled band moved: the state must be re-evaluated on the new map,
