@@ -21,7 +21,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np
 
-from pipeline.tem.truth import coating_decision, evaluate_case
+from pipeline.synth.tem_truth import coating_decision, evaluate_case
 
 # (pixel size m, blur sigma px, edge SNR, rotation deg) combinations crossed with n and coating
 CONDITIONS = [(0.1e-9, 1.0, 20.0, 3.0), (0.25e-9, 0.5, np.inf, -8.0), (0.25e-9, 2.0, 5.0, 12.0),
@@ -54,10 +54,10 @@ def tip_b_images():
 
 
 def bench_tip_b():
-    from pipeline.fits import fit_tip_profile
+    from pipeline.fits.profile_fit import fit_tip_profile
+    from pipeline.synth.tem_truth import force_errors, profile_errors
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import TemImage
-    from pipeline.tem.truth import force_errors, profile_errors
 
     print("\nsample tip B (0.2 nm px, blur 1.2 px, SNR 15, 1.5 nm oxide, R = 10 nm, S = 2)")
     print(f"{'interval':>8} {'n':>5} {'n_fit':>6} {'sig_n':>6} | {'rmsN nm':>8} {'|dF|max%':>8} {'coat nm':>7} {'t s':>5}")

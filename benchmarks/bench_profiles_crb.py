@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_profiles_crb.py [--quick] [--px 0.5 ...] [--n 2 ...] [--convergence]
 
 For the grid of the slow accuracy test (tests/test_tem_profiles.py::GRID, finite
-SNR, rotation 0): n in {2, 3, 4, 6} with R from ``pipeline.tem.truth.TIP_SHAPES``
+SNR, rotation 0): n in {2, 3, 4, 6} with R from ``pipeline.synth.tem_truth.TIP_SHAPES``
 (Q = R^(n-1)), pixel size {0.1, 0.25, 0.5} nm, blur {0.5, 2} px, edge SNR {10, 5},
 coating {0, 1.5, 15} nm, image side as in ``evaluate_case``.  One row per case:
 CRB of n with the shank above the 6 nm window and all nuisances free, the
@@ -31,7 +31,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np
 
 from pipeline.synth.tem_fisher import crb_summary, fisher_information
-from pipeline.tem.truth import TIP_SHAPES
+from pipeline.synth.tem_truth import TIP_SHAPES
 
 NS = [2.0, 3.0, 4.0, 6.0]
 PXS = [0.1e-9, 0.25e-9, 0.5e-9]
@@ -56,7 +56,7 @@ def p_within(sd, tol=0.1):
 
 def fit_efficiency(n, px, blur, snr, coat, crb, seeds):
     """' | median sigma_n / CRB, RMS(n_fit - n) / CRB' of the pipeline's fit over noise seeds."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     out = [evaluate_case(n, px, blur, snr, 0.0, coat, seed=1000 + k) for k in range(seeds)]
     sn = np.median([o["sigma_n"] for o in out])
@@ -70,7 +70,7 @@ def efficiency_table(seeds, csv="tests/data/crb_grid.csv"):
     RMS/sigma_n > 1 is a reported uncertainty smaller than the real scatter."""
     import pandas as pd
 
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     t = pd.read_csv(csv)
     print(f"fit efficiency over {seeds} images per case (SNR 10, blur 0.5 px; 1 = at the bound)")

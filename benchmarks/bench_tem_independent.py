@@ -9,7 +9,7 @@ the apex are on in every other pair of images, the rest is random by seed), save
 instrument would (8/16-bit TIFF with ImageJ calibration, or an uncalibrated PNG whose pixel
 size comes from the "tip YAML" as in the workflow, or a float32 TIFF), and runs it through
 the workflow's path: ``read_tem_image`` -> ``extract_profile`` (workflow defaults: orientation
-auto, 20 nm profile, coating auto, global refinement) -> profile HDF5 -> ``pipeline.fits.run_fit``
+auto, 20 nm profile, coating auto, global refinement) -> profile HDF5 -> ``pipeline.fits.stage.run_fit``
 (6 nm window, S = 1).  ``pipeline.synth.tem_wave_truth`` grades each against the truth.
 
 Prints one row per image (with --verbose), then per category and overall: images, lost (the

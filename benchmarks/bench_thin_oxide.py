@@ -31,7 +31,7 @@ ROTATIONS = [-12.0, -4.0, 0.0, 7.0, 14.0]
 
 def run_case(case):
     """Fit one image; return a flat dict of its decision, errors and reported uncertainty (SI)."""
-    from pipeline.tem.truth import coating_decision, evaluate_case
+    from pipeline.synth.tem_truth import coating_decision, evaluate_case
 
     n, px, snr, coat, s = case
     e = evaluate_case(n, px, 2.0, snr, ROTATIONS[s % 5], coat, seed=500 + s, orientation="up" if s % 2 else "down")

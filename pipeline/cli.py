@@ -50,7 +50,7 @@ def cmd_profiles(a):
 
 def cmd_fit(a):
     from pipeline.config import load_tip_config
-    from pipeline.fits import run_fit
+    from pipeline.fits.stage import run_fit
 
     tip = load_tip_config(a.tip_config)
     iv = _interval(tip, a.interval)
@@ -58,7 +58,7 @@ def cmd_fit(a):
 
 
 def cmd_fit_figure(a):
-    from pipeline.fits import plot_tip_fits
+    from pipeline.fits.figures import plot_tip_fits
 
     plot_tip_fits(a.fit_h5, a.out_png, labels=[Path(p).stem for p in a.fit_h5])
 

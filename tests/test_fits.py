@@ -6,8 +6,12 @@ import numpy as np
 import pytest
 
 from pipeline import h5io
-from pipeline.fits import (FitError, fit_power_law, plot_tip_fits, read_fit, rigid_dugdale_area,
-                           rigid_dugdale_log_gradient, run_fit)
+from pipeline.fits import FitError
+from pipeline.fits.figures import plot_tip_fits
+from pipeline.fits.io import read_fit
+from pipeline.fits.power_law import rigid_dugdale_area, rigid_dugdale_log_gradient
+from pipeline.fits.profile_fit import fit_power_law
+from pipeline.fits.stage import run_fit
 
 NM = 1e-9
 

@@ -270,7 +270,7 @@ def test_paraboloid_fit_matches_linear_least_squares():
     """fits.fit_power_law(fixed_n=2) on a noisy paraboloid: R agrees with the closed-form linear
     least squares of z on r^2 (an independent computation; vertical vs orthogonal residuals
     differ by < 0.5 % at these slopes) and with the truth within its reported uncertainty."""
-    from pipeline.fits import fit_power_law
+    from pipeline.fits.profile_fit import fit_power_law
 
     rng = np.random.default_rng(4)
     R = 15e-9

@@ -10,9 +10,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "pipeline"
 # Imports of pipeline.synth outside it that are allowed: the CLI's make-samples (inside the command's
-# function), and the TEM grader pipeline/tem/truth.py, which belongs in pipeline/synth and moves
-# there with the TEM stage's restructuring (then its entry here goes).
-SYNTH_IMPORTS_ALLOWED = {("pipeline.cli", "pipeline.synth.wear_test"), ("pipeline.tem.truth", "pipeline.synth.tem_image")}
+# function).
+SYNTH_IMPORTS_ALLOWED = {("pipeline.cli", "pipeline.synth.wear_test")}
 
 
 def module_names() -> dict:
@@ -96,7 +95,7 @@ def test_no_import_cycle_between_modules():
 
 def test_no_import_cycle_between_stage_packages():
     """pipeline.tem, pipeline.inversion, ...: a package may use another only if that one does not use
-    it back (the allowed TEM grader import left out; it moves with the TEM restructuring)."""
+    it back (the CLI's make-samples import left out)."""
     graph = import_graph()
     edges = {}
     for module, imported in graph.items():
@@ -119,11 +118,10 @@ def test_no_stage_imports_the_synthetic_data():
     assert cli and not any(top for t, top in graph["pipeline.cli"] if t.startswith("pipeline.synth"))
 
 
-# Functions longer than MAX_FUNCTION_LINES left for now: the TEM stage and the fits are being
-# rewritten (silhouette_fit split, fits/ package) and forces/pulloff.py is being changed; their
-# long functions go with those changes (then their entries here go).
+# Functions longer than MAX_FUNCTION_LINES left for now: forces/pulloff.py is being changed; its long
+# function goes with that change (then its entry here goes).
 MAX_FUNCTION_LINES = 60
-LONG_FUNCTIONS_LEFT = ("pipeline/tem/", "pipeline/fits.py", "pipeline/forces/pulloff.py")
+LONG_FUNCTIONS_LEFT = ("pipeline/forces/pulloff.py",)
 
 
 def function_lengths():
@@ -143,7 +141,7 @@ def function_lengths():
 def test_function_lengths_counted():
     found = {(f, n): k for k, f, n in function_lengths()}
     assert found[("pipeline/cli.py", "main")] == 11  # def, 9 body lines and a blank one inside
-    assert max(found.values()) > MAX_FUNCTION_LINES  # the TEM functions left for now
+    assert max(found.values()) > MAX_FUNCTION_LINES  # forces.pulloff.detect_pulloff, left for now
 
 
 def test_no_function_over_60_lines():

@@ -42,7 +42,7 @@ N_AGREE_DEFAULT = 0.002  # 2 % of the 0.1 target
 
 
 def fit_cases() -> dict:
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     out = {}
     for name, (n, px, blur, snr, rot, coat, kw) in CASES.items():

@@ -132,7 +132,7 @@ def test_reported_sigma_n_is_near_the_cramer_rao_bound():
     """The silhouette fit's own sigma_n (n = 2, R = 10 nm, 0.5 nm px, blur 1 px, SNR 10) lies
     between the bound (an uncertainty below it would be overconfident) and 1.6x it (the fit
     is close to efficient at coarse pixels; 1.06x on this seed)."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     res = fisher_information(2.0, 10 * NM, 0.5 * NM, (384, 384), blur_sigma_px=1.0, edge_snr=10.0, rotation_deg=0.0)
     crb = crb_summary(res)["crb_n"]

@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from pipeline.synth.tem_image import render_tem_image, write_tem_tiff
+from pipeline.synth.tem_truth import evaluate_case
 from pipeline.tem.errors import ApexAtBorderError, NoTipError, TemError
 from pipeline.tem.stage import run_profiles
-from pipeline.tem.truth import evaluate_case
 
 NM = 1e-9
 
@@ -80,8 +80,9 @@ GRID = list(itertools.product([2.0, 3.0, 4.0, 6.0], [0.1e-9, 0.25e-9, 0.5e-9], [
 @functools.lru_cache(maxsize=1)
 def _crb_table():
     """Cramer-Rao bounds of the noisy grid cases (benchmarks/bench_profiles_crb.py --csv)."""
-    import pandas as pd
     from pathlib import Path
+
+    import pandas as pd
 
     t = pd.read_csv(Path(__file__).parent / "data" / "crb_grid.csv")
     return {(r.n, round(r.pixel_size_nm, 3), r.blur_px, round(r.coating_nm, 3), r.edge_snr):

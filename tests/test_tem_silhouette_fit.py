@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.fits import fit_power_law
+from pipeline.fits.profile_fit import fit_power_law
 from pipeline.synth.tem_image import render_tem_image
+from pipeline.synth.tem_truth import profile_errors
 from pipeline.tem.profiles import extract_profile
 from pipeline.tem.reading import TemImage
-from pipeline.tem.truth import profile_errors
 
 pytestmark = pytest.mark.filterwarnings("error")
 
@@ -119,7 +119,7 @@ def test_blunt_tip_power_index_unbiased_over_noise_seeds():
     """Flat faces under noise: the mean n over 12 seeds of a blunt DLC-coated tip (n 6,
     0.25 nm px, SNR 10) stays within 0.04 of the truth (a hard monotone constraint on the
     face gave -0.05, a filled envelope with no constraint +0.2)."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     dn = [evaluate_case(6.0, 0.25e-9, 1.0, 10.0, [4.7, -3.1, 9.0, -11.0][s % 4], 15e-9, seed=s, R=25e-9,
                         orientation="up" if s % 2 else "down")["dn"] for s in range(12)]
@@ -133,7 +133,7 @@ def test_sigma_n_matches_the_scatter_on_a_sharp_tip_at_coarse_pixels():
     a factor 1.4 (the local-translation columns had given 0.6 x the scatter).  The tip is
     declared uncoated: at these pixels and blur the image cannot exclude a thin light layer,
     and "auto" widens sigma_n for that (tested in test_tem_profiles)."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     es = [evaluate_case(2.0, 0.5e-9, 2.0, 10.0, [4.7, -3.1, 9.0, -11.0][s % 4], 0.0, seed=s, R=10e-9,
                         orientation="up" if s % 2 else "down", coating="none") for s in range(12)]
@@ -188,7 +188,7 @@ def test_thin_oxide_on_a_blunt_tip_is_found_at_coarse_pixels():
     fit puts the edge ~0.9 nm inside (on the core) and shifted uniformly outwards it fits
     worse than without a layer (the flat face sees the layer through a longer chord than the
     flanks), so only the full-shape coated search finds it."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     e = evaluate_case(6.0, 0.5e-9, 2.0, np.inf, 7.0, 1.5e-9, seed=208)
     em = e["profile"].edge_model
@@ -201,7 +201,7 @@ def test_no_phantom_layer_on_a_flat_face():
     """Noise-free uncoated n = 6 tip, 0.5 nm pixels, 2 px blur: no layer is accepted (with 4 x 4
     sub-samples at the edge the model error on the flat face let a 0.8 nm phantom layer
     lower chi^2 by 592 and moved the edge 0.48 nm out)."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     e = evaluate_case(6.0, 0.5e-9, 2.0, np.inf, 7.0, 0.0, seed=207, orientation="up")
     assert e["profile"].edge_model["coating_test"]["model"] == "single"
@@ -213,7 +213,7 @@ def test_undecidable_layer_is_flagged_and_covered_by_the_reported_uncertainty():
     layer is there (a layered fit changes chi^2 by less than the threshold either way).  The
     single-layer edge (~0.9 nm inside the true surface) is kept, flagged, and its covariance
     widened so that the reported uncertainty covers the error (here ~1.3 sd)."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     e = evaluate_case(3.0, 0.5e-9, 2.0, 10.0, 5.0, 1.5e-9, seed=2, R=15e-9)
     ct = e["profile"].edge_model["coating_test"]
@@ -232,7 +232,7 @@ def test_coated_fit_at_fine_pixels_is_precise_and_its_sigma_honest():
     measured 0.0071; the LM solution alone, short of the optimum, scattered 0.0154) and the
     reported sigma_n within a factor 1.6 of it (measured 0.0093). 16 images, not 8: the SD of
     8 draws scatters by +/-25 %, too much for a 2x bound on a 1.3x fit."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     rotations = [4.7, -3.1, 9.0, -11.0]
     es = [evaluate_case(2.0, 0.1e-9, 0.5, 20.0, rotations[s % 4], 1.5e-9, seed=400 + s,
@@ -247,7 +247,7 @@ def test_given_coating_thicker_than_the_fitted_band_fits_the_outer_layer_alone()
     """tem.coating: 15 nm (a DLC-coated tip at 0.25 nm px, 60 px): the core lies outside the
     pixels of the fit, so the outer layer is fitted alone (as with "auto"), with a note; a coated
     model clipped to the band had reported a 2 nm layer of no contrast, "not identifiable"."""
-    from pipeline.tem.truth import evaluate_case
+    from pipeline.synth.tem_truth import evaluate_case
 
     e = evaluate_case(5.4, 0.25e-9, 1.2, 15.0, 3.0, 15e-9, seed=3, R=30e-9, coating=15e-9)
     ct = e["profile"].edge_model["coating_test"]

@@ -11,8 +11,16 @@ import pytest
 from scipy.special import fresnel
 
 from pipeline.synth import tem_wave_optics as opt
-from pipeline.synth.tem_wave import (ParticleSpec, TemWaveParams, draw_params, main, simulate, simulate_intensity,
-                                     tip_body, write_image)
+from pipeline.synth.tem_wave import (
+    ParticleSpec,
+    TemWaveParams,
+    draw_params,
+    main,
+    simulate,
+    simulate_intensity,
+    tip_body,
+    write_image,
+)
 from pipeline.synth.tem_wave_geometry import Particle, TipBody, limacon_chord, projected_thickness
 from pipeline.synth.tem_wave_truth import edge_errors, grade, ideal_fit, tip_frame, true_section_area
 
@@ -266,7 +274,7 @@ def test_grader_on_the_true_silhouette():
     """A profile that IS the true silhouette grades to edge RMS ~ 0 and n as the ideal fit."""
     from types import SimpleNamespace
 
-    from pipeline.fits import fit_power_law
+    from pipeline.fits.profile_fit import fit_power_law
 
     p = draw_params(4, asymmetry=0.0, shape=(256, 256), pixel_size=0.3e-9)
     _, truth = simulate(p)

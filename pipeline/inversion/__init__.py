@@ -17,7 +17,7 @@ Modules:
 * ``calibration``: checks and corrections of the forces (k shared by the tip, implausible
   pull-offs, the tip's contact compliance in a contact-slope InvOLS);
 * ``hgrid``: the h grid, its Monte-Carlo subset and interpolation in ln h;
-* ``io``: the stage-2 fit reader ``load_fit``, the inversion file's writer and its reader
+* ``io``: the stage-2 fit reader ``load_fit`` (from ``pipeline.fits.io``), the inversion file's writer and its reader
   ``load_inversion``;
 * ``stage``: :func:`~pipeline.inversion.stage.run_inversion`, the command-line stage.
 """

@@ -1,4 +1,5 @@
-"""Files of stage 4: the stage-2 fit it reads (:func:`load_fit`) and the inversion file it writes
+"""Files of stage 4: the stage-2 fit it reads (:func:`load_fit`, from ``pipeline.fits.io``, where the fit
+file's layout is spelled) and the inversion file it writes
 (:func:`write_inversion_h5`, :func:`load_inversion`: the only place its layout is spelled).
 
 Inversion file layout (every dataset has ``units``): ``h_grid``, ``h_grid_mc`` (the subset on
@@ -18,13 +19,12 @@ from __future__ import annotations
 import h5py
 import numpy as np
 
+from pipeline.fits.io import load_fit
 from pipeline.h5io import (
     atomic_h5,
     create_group,
     read_attr_json,
     read_dataset,
-    read_value,
-    require_group,
     write_dataset,
 )
 from pipeline.inversion.hgrid import interp_loglog
@@ -34,53 +34,10 @@ from pipeline.inversion.shape import N_POLICY
 
 PERCENTILES = (16.0, 50.0, 84.0)
 FP_SAMPLING = "Student t (dof = n_curves - 1; normal if < 3 curves) around F_p_mean with F_p_sem, truncated > 0"
+__all__ = ["load_fit", "write_inversion_h5", "load_inversion"]
+
 SYSTEMATIC = ("k and E* drawn once per sample, shared by all intervals; InvOLS per interval (its own draw) "
               "unless stage 3 marks it shared by the tip")
-
-
-# ------------------------------------------------------------------------ the stage-2 fit
-def load_fit(path) -> dict:
-    """Read the stage-2 power-law fit of one interval (SI) from its HDF5 file (groups ``fit`` and,
-    if stage 2 wrote it, ``fit_n2``: the paraboloid fit with n held at 2).
-
-    Returns n, u_n, ln_Q, Q (m^(n-1)), R (m), S, cov_n_lnQ (2x2), rms_residual (m), flags and
-    ``paraboloid`` (the n = 2 fit as a dict of the same keys, or None).  Stage 2 has its own
-    reader of this layout (``pipeline.fits.read_fit``).
-    """
-    with h5py.File(path, "r") as f:
-        para = _read_paraboloid(f)
-        g = require_group(f, "fit")
-        n = float(read_value(g, "n", required=True))
-        ln_q, q = read_value(g, "ln_Q"), read_value(g, "Q")
-        if ln_q is None:
-            if q is None:
-                raise KeyError(f"{path}: fit has neither ln_Q nor Q")
-            ln_q = np.log(float(q))
-        ln_q = float(ln_q)
-        q = float(q) if q is not None else float(np.exp(ln_q))
-        s = float(read_value(g, "S", 1.0))
-        r = read_value(g, "R")
-        r = float(r) if r is not None else float(np.exp((ln_q - (n - 2.0) * np.log(s)) / (n - 1.0)))
-        cov = read_value(g, "cov_n_lnQ")
-        cov = np.zeros((2, 2)) if cov is None else np.asarray(cov, dtype=float).reshape(2, 2)
-        flags = read_value(g, "flags", [])
-        if isinstance(flags, (str, bytes)):
-            flags = [flags.decode() if isinstance(flags, bytes) else flags]
-        flags = [str(x) for x in np.atleast_1d(flags) if str(x)]
-        rms = read_value(g, "rms_residual", np.nan)
-    return {"n": n, "u_n": float(np.sqrt(max(cov[0, 0], 0.0))), "ln_Q": ln_q, "Q": q, "R": r, "S": s, "cov_n_lnQ": cov,
-            "rms_residual": float(rms), "flags": flags, "paraboloid": para}
-
-
-def _read_paraboloid(f):
-    """The n = 2 fit of group ``fit_n2`` (None if absent or failed)."""
-    if "fit_n2" not in f or f["fit_n2"].attrs.get("failed", False):
-        return None
-    gp = f["fit_n2"]
-    cp = np.asarray(gp["cov_n_lnQ"][()], float).reshape(2, 2)
-    fl = [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(gp["flags"][()])]
-    return {"n": 2.0, "u_n": 0.0, "ln_Q": float(gp["ln_Q"][()]), "Q": float(gp["Q"][()]), "R": float(gp["R"][()]),
-            "cov_n_lnQ": cp, "rms_residual": float(gp["rms_residual"][()]), "flags": [x for x in fl if x]}
 
 
 # ---------------------------------------------------------------------- the inversion file

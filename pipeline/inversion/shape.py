@@ -47,7 +47,7 @@ def shape_for_inversion(fit: dict, reference: bool):
     A reference interval is the unworn, paraboloidal tip of the method (the paper's n = 2
     interval).  Where its fitted n is consistent with 2 (within REFERENCE_N_SIGMA sigma_n), it
     is used as a paraboloid with R from the paraboloid fit of the same profile (n held at 2,
-    ``fits.run_fit`` group ``fit_n2``), instead of clipping a free-n fit: with n free, R is
+    ``pipeline.fits.stage.run_fit``, group ``fit_n2``), instead of clipping a free-n fit: with n free, R is
     tied to an uncertain n (a fit of n = 1.70 +- 0.45 clipped to 2 kept an R 12 % off).  A worn
     interval whose n is below 2 but within the clipping tolerance is treated the same way.
     A reference that is not consistent with 2 keeps its power-law fit and the note says the

@@ -345,13 +345,13 @@ CRB_HEIGHTS = np.arange(1, 7) * 1e-9  # m, crb_summary's default heights above t
 
 def crb_summary(res: FisherResult, heights=CRB_HEIGHTS, edge_snr=None):
     """Bounds from a FisherResult: CRB of n (full nuisances, optimistic) and of the relative rigid
-    Dugdale pull-off area error (Eq. 12, ``pipeline.fits.rigid_dugdale_area``) at ``heights`` (m).
+    Dugdale pull-off area error (Eq. 12, ``pipeline.fits.power_law.rigid_dugdale_area``) at ``heights`` (m).
 
     edge_snr: evaluate at this edge SNR instead of the one of ``res`` (F scales with SNR^2).
     Returns dict: crb_n, crb_n_opt, crb_logQ, crb_dugdale (per h, relative), crb_dugdale_opt,
     cond (condition number of the scaled Fisher matrix), cov_nlogQ (2 x 2, full).
     """
-    from pipeline.fits import rigid_dugdale_log_gradient
+    from pipeline.fits.power_law import rigid_dugdale_log_gradient
 
     n_bg = res.n_bg * (1.0 if edge_snr is None else (edge_snr / res.edge_snr) ** 2)
     n, Q = res.n, res.Q

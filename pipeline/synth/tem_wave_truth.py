@@ -20,7 +20,7 @@ Metrics (SI units):
   (``pipeline.inversion.UNUSABLE_FIT_FLAGS``), or the n policy rejects it (``clip_n``).
 
 ``evaluate_file`` runs an image file through the workflow's own path: ``read_tem_image``
--> ``extract_profile`` (workflow defaults) -> profile HDF5 -> ``pipeline.fits.run_fit`` ->
+-> ``extract_profile`` (workflow defaults) -> profile HDF5 -> ``pipeline.fits.stage.run_fit`` ->
 the fit HDF5 read back, and grades it.
 """
 from __future__ import annotations
@@ -103,9 +103,9 @@ def edge_errors(edge_px, truth, select=None):
 
 
 def ideal_fit(truth, fit_height=6e-9, spacing=0.05e-9):
-    """Stage-2 fit (``pipeline.fits.fit_power_law``) of the exact true silhouette, both flanks,
+    """Stage-2 fit (``pipeline.fits.profile_fit.fit_power_law``) of the exact true silhouette, both flanks,
     points evenly spaced along the curve (as edge points are) up to ``fit_height``."""
-    from pipeline.fits import fit_power_law
+    from pipeline.fits.profile_fit import fit_power_law
 
     xz = np.asarray(truth["silhouette_tip"], float)
     xz = xz[xz[:, 1] <= fit_height * 1.05]
@@ -136,7 +136,7 @@ def lost_reason(fit):
 
 def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
     """All metrics of the module doc for one extracted profile and its stage-2 fit."""
-    from pipeline.fits import rigid_dugdale_area, rigid_dugdale_log_gradient
+    from pipeline.fits.power_law import rigid_dugdale_area, rigid_dugdale_log_gradient
 
     e = edge_errors(profile.edge_px, truth, profile.z <= fit_height)  # the points stage 2 fits
     ax, az = tip_frame(profile.apex_px[None, :], truth)
@@ -176,10 +176,12 @@ def evaluate_file(image_path, truth, pixel_size=None, workdir=None, fit_height=6
     calibration); ``figure``: a PNG path for ``plot_comparison``.  Returns the ``grade``
     dict (or a lost record) plus ``t_stage`` (s: read, profile, fit) and ``t_profile``
     (s: extract_profile alone)."""
-    from pipeline.fits import FitError, read_fit, run_fit
+    from pipeline.fits import FitError
+    from pipeline.fits.io import read_fit
+    from pipeline.fits.stage import run_fit
+    from pipeline.tem.io import write_profile_h5
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import read_tem_image
-    from pipeline.tem.stage import write_profile_h5
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:

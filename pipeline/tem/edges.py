@@ -45,7 +45,7 @@ class CoarseTip:
     bbox: tuple = ((0, 0), (0, 0))  # ((row0, row1), (col0, col1)) full image, tip region
 
 
-class _Fail(Exception):
+class _Fail(Exception):  # noqa: N818 - a control-flow signal inside the stage, worded by its caller
     pass
 
 
@@ -56,13 +56,9 @@ def _downsample(img, factor):
     return img[:h, :w].reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
 
 
-def locate_tip(img, max_height_px, orientation="auto"):
-    """Coarse tip: returns (CoarseTip, flipped) with ``flipped`` True if the tip pointed up.
-
-    Works on a block-averaged copy (<= ~256 px) with the background flattened;
-    the mask threshold sits just below the background (5 % of the tip contrast,
-    >= 4 noise sigma) so that a light coating belongs to the tip.  Raises _Fail.
-    """
+def _tip_mask(img, orientation):
+    """(block size f, (mask of the tip in the block-averaged image, flipped), dark level) of
+    ``locate_tip``: the largest dark object entering from the top (or bottom) edge."""
     from skimage.filters import threshold_otsu
 
     H, W = img.shape
@@ -95,7 +91,38 @@ def locate_tip(img, max_height_px, orientation="auto"):
     if score[k] < 0.01 * small.size:
         raise _Fail("no tip in the image (no large dark object entering from the top or bottom edge)")
     flipped = orientation == "up" or (orientation == "auto" and bot[k] > top[k])
-    mask = lab == k
+    return f, (lab == k, flipped), dark_level
+
+
+def _midline_slope(mask, apex_r, hgt):
+    """d(midline column)/d(height) of the tip mask, robust line fit (``locate_tip``)."""
+    long_rr = np.arange(max(0, apex_r - 3 * hgt), apex_r + 1)
+    lsub = mask[long_rr]
+    lhas = lsub.any(axis=1)
+    ll = np.argmax(lsub, axis=1)
+    lr = lsub.shape[1] - 1 - np.argmax(lsub[:, ::-1], axis=1)
+    lh = (apex_r - long_rr).astype(float)
+    use = lhas & (lh > 0.3 * hgt) & (ll > 0) & (lr < lsub.shape[1] - 1)
+    slope = 0.0
+    if use.sum() >= 3:
+        hh, mm = lh[use], 0.5 * (ll + lr)[use]
+        keep = np.ones(hh.size, bool)
+        for _ in range(3):
+            c = np.polyfit(hh[keep], mm[keep], 1)
+            res = mm - np.polyval(c, hh)
+            keep = np.abs(res) <= max(2.0, 3 * 1.4826 * np.median(np.abs(res[keep])))
+        slope = c[0]
+    return slope
+
+
+def locate_tip(img, max_height_px, orientation="auto"):
+    """Coarse tip: returns (CoarseTip, flipped) with ``flipped`` True if the tip pointed up.
+
+    Works on a block-averaged copy (<= ~256 px) with the background flattened;
+    the mask threshold sits just below the background (5 % of the tip contrast,
+    >= 4 noise sigma) so that a light coating belongs to the tip.  Raises _Fail.
+    """
+    f, (mask, flipped), dark_level = _tip_mask(img, orientation)
     if flipped:
         mask = mask[::-1]
     rows = np.nonzero(mask.any(axis=1))[0]
@@ -114,22 +141,7 @@ def locate_tip(img, max_height_px, orientation="auto"):
         raise _Fail("apex touches the image border (tip cut by the left/right edge)")
     # axis direction from the midline over a longer stretch of the tip (up to 3x the
     # window height, bottom 30 % excluded), robust line fit against contamination
-    long_rr = np.arange(max(0, apex_r - 3 * hgt), apex_r + 1)
-    lsub = mask[long_rr]
-    lhas = lsub.any(axis=1)
-    ll = np.argmax(lsub, axis=1)
-    lr = lsub.shape[1] - 1 - np.argmax(lsub[:, ::-1], axis=1)
-    lh = (apex_r - long_rr).astype(float)
-    use = lhas & (lh > 0.3 * hgt) & (ll > 0) & (lr < lsub.shape[1] - 1)
-    slope = 0.0
-    if use.sum() >= 3:
-        hh, mm = lh[use], 0.5 * (ll + lr)[use]
-        keep = np.ones(hh.size, bool)
-        for _ in range(3):
-            c = np.polyfit(hh[keep], mm[keep], 1)
-            res = mm - np.polyval(c, hh)
-            keep = np.abs(res) <= max(2.0, 3 * 1.4826 * np.median(np.abs(res[keep])))
-        slope = c[0]
+    slope = _midline_slope(mask, apex_r, hgt)
     apex_cols = np.nonzero(mask[apex_r])[0]
     theta = _perpendicular_cut_axis(mask, apex_r, apex_cols.mean(), np.arctan(slope), hgt)
     apex = np.array([(apex_r + 0.5) * f - 0.5, (apex_cols.mean() + 0.5) * f - 0.5])
@@ -462,41 +474,25 @@ def smooth_along(d, sigma):
     return ndimage.gaussian_filter1d(d, sigma, mode="nearest") if sigma > 0 else d
 
 
-def refine_edges(win, pts, frame, coat_hint=None, outer_iters=4, smooth_px=2.0, smooth_ab=0.0,
-                 frame_update=None, target_px=0.15):
-    """Model-based sub-pixel silhouette along the normals (see module doc).
+class _GlobalSearch:
+    """The global parameters of ``refine_edges``: residuals for (log k_o, log sigma[, log k_c, log c])
+    with the shifts fitted on a subset of the normals and smoothed along the arc, their bounded
+    least squares, and the choice single layer vs coated.  ``body`` and ``lo_shift`` are the
+    caller's current ones (it replaces them between iterations)."""
 
-    ``smooth_px``: minimum Gaussian smoothing of the edge shifts along the arc
-    (px, 1-px contour spacing); raised adaptively (up to 12 px) until the
-    smoothed shift precision reaches ``target_px``.
-    """
-    pts = resample_curve(pts, 1.0)
-    nrm, tan = curve_normals(pts)
-    # outward = towards brighter background
-    q_out = pts + 2 * nrm
-    q_in = pts - 2 * nrm
-    io = ndimage.map_coordinates(win, q_out.T, order=1, mode="nearest")
-    ii = ndimage.map_coordinates(win, q_in.T, order=1, mode="nearest")
-    if np.median(io - ii) < 0:
-        nrm, tan = -nrm, -tan
-    s_in, s_out = 10.0, 6.0
-    body = BodyModel(frame, pts)
-    sigma, k_o, k_c, coat = 1.0, 0.02, 0.02, 0.0
-    ns = NormalSampler(win, pts, nrm, tan, s_in, s_out)
-    N = len(pts)
-    step_sub = max(1, N // 60)
-    sub = np.arange(0, N, step_sub)
-    state = {"smooth": smooth_px}
+    def __init__(self, ns, body, sub, step_sub, smooth, lo_shift, k_est, k_lim, coat_hint, s_in):
+        self.ns, self.body, self.sub, self.step_sub = ns, body, sub, step_sub
+        self.smooth, self.lo_shift = smooth, lo_shift
+        self.k_est, (self.k_lo, self.k_hi), self.coat_hint, self.s_in = k_est, k_lim, coat_hint, s_in
+        k_lo, k_hi = k_lim
+        self.lb1, self.ub1 = [np.log(k_lo), np.log(0.25)], [np.log(k_hi), np.log(6.0)]
+        self.lb2 = [np.log(1e-4), self.lb1[1], np.log(k_lo), np.log(0.5)]  # outer layer may be much lighter
+        self.ub2 = [self.ub1[0], self.ub1[1], np.log(k_hi), np.log(s_in + 3)]
 
-    moved = pts.copy()
-    # prior: the initial contour is an iso-level just below the background, so the
-    # OUTER surface lies at most a few px inside it (a stronger core edge further in
-    # must not capture the fit); relaxed once the model has settled
-    lo_shift = -2.5
-
-    def glob_resid(p, with_coat):
+    def glob_resid(self, p, with_coat):
         """Residuals for global (k_o, sigma[, k_c, c]) with shifts fitted, then smoothed
         along the arc like the final edge (no per-normal freedom to fit noise)."""
+        ns, body, sub = self.ns, self.body, self.sub
         k_o_, sig_ = np.exp(p[0]), np.exp(p[1])
         if with_coat:
             k_c_, c_ = np.exp(p[2]), np.exp(p[3])
@@ -505,42 +501,34 @@ def refine_edges(win, pts, frame, coat_hint=None, outer_iters=4, smooth_px=2.0, 
             k_c_ = k_o_
             body.set_coat(0.0)
         Tf = ns.transmission(body, k_o_, k_c_, sig_, sub)
-        d, _, _, _ = fit_shifts(ns, Tf, np.zeros(len(sub)), sel=sub, iters=4, lo=lo_shift)
-        d = smooth_along(d, state["smooth"] / step_sub)
+        d, _, _, _ = fit_shifts(ns, Tf, np.zeros(len(sub)), sel=sub, iters=4, lo=self.lo_shift)
+        d = smooth_along(d, self.smooth / self.step_sub)
         M = ns.model_at(Tf, d)
         return ns.affine(M, ns.I[sub])[2].ravel()
 
-    def cost(p, with_coat):
-        r = glob_resid(p, with_coat)
+    def cost(self, p, with_coat):
+        r = self.glob_resid(p, with_coat)
         return float(r @ r)
 
-    # physical prior on the attenuation: axis transmission vs background with zero
-    # offset, T = exp(-k 2 rho); k is bounded to [0.25, 4] x this estimate
-    k_est = _axis_attenuation(win, body, np.median(ns.I[:, -3:]))
-    k_lo, k_hi = (max(1e-4, 0.2 * k_est), min(2.0, 5.0 * k_est)) if np.isfinite(k_est) else (1e-4, 2.0)
-    k_o = float(np.clip(k_o, k_lo, k_hi))
-    lb1, ub1 = [np.log(k_lo), np.log(0.25)], [np.log(k_hi), np.log(6.0)]
-    lb2 = [np.log(1e-4), lb1[1], np.log(k_lo), np.log(0.5)]  # outer layer may be much lighter
-    ub2 = [ub1[0], ub1[1], np.log(k_hi), np.log(s_in + 3)]
-
-    def refine(p0, with_coat):
-        lb, ub = (lb2, ub2) if with_coat else (lb1, ub1)
+    def refine(self, p0, with_coat):
+        lb, ub = (self.lb2, self.ub2) if with_coat else (self.lb1, self.ub1)
         p0 = np.clip(p0, np.add(lb, 1e-6), np.subtract(ub, 1e-6))
-        res = optimize.least_squares(glob_resid, p0, args=(with_coat,), bounds=(lb, ub),
+        res = optimize.least_squares(self.glob_resid, p0, args=(with_coat,), bounds=(lb, ub),
                                      diff_step=1e-3, max_nfev=20)
         return 0.5 * float(res.fun @ res.fun), res.x
 
-    def choose_globals(x1):
+    def choose_globals(self, x1):
         """Single layer vs coated (outer layer k_o, core k_c, normal thickness c px)."""
-        c1, x1 = refine(x1, False)
+        coat_hint, k_est, k_lo, k_hi, s_in = self.coat_hint, self.k_est, self.k_lo, self.k_hi, self.s_in
+        c1, x1 = self.refine(x1, False)
         best = (c1, x1, False)
         if coat_hint is None or coat_hint > 0:
             kr = k_est if np.isfinite(k_est) else np.exp(x1[0])
             cands = [(np.log(kr * fo), x1[1], np.log(np.clip(kr * fc, k_lo, k_hi)), np.log(c))
                      for c in ([coat_hint] if coat_hint else (1.5, 4.0, 8.0))
                      for fo in (0.1, 0.35) for fc in (0.7, 1.5) if c < s_in + 3]
-            p2 = min(cands, key=lambda p: cost(p, True))
-            c2, x2 = refine(p2, True)
+            p2 = min(cands, key=lambda p: self.cost(p, True))
+            c2, x2 = self.refine(p2, True)
             ko2, kc2, cc2 = np.exp(x2[0]), np.exp(x2[2]), np.exp(x2[3])
             physical = 1.5 * ko2 < kc2 and ko2 > 0.05 * kc2 and 1.0 < cc2 < s_in + 2
             if coat_hint or (c2 < 0.85 * c1 and physical):
@@ -550,28 +538,71 @@ def refine_edges(win, pts, frame, coat_hint=None, outer_iters=4, smooth_px=2.0, 
         k_c, coat = (np.exp(x[2]), np.exp(x[3])) if with_coat else (k_o, 0.0)
         return k_o, k_c, coat, sigma
 
+
+def _outward_normals(win, pts):
+    """Normals and tangents of the curve, the normals pointing towards the brighter background."""
+    nrm, tan = curve_normals(pts)
+    # outward = towards brighter background
+    q_out = pts + 2 * nrm
+    q_in = pts - 2 * nrm
+    io = ndimage.map_coordinates(win, q_out.T, order=1, mode="nearest")
+    ii = ndimage.map_coordinates(win, q_in.T, order=1, mode="nearest")
+    if np.median(io - ii) < 0:
+        nrm, tan = -nrm, -tan
+    return nrm, tan
+
+
+def refine_edges(win, pts, frame, coat_hint=None, outer_iters=4, smooth_px=2.0, smooth_ab=0.0,
+                 frame_update=None, target_px=0.15):
+    """Model-based sub-pixel silhouette along the normals (see module doc).
+
+    ``smooth_px``: minimum Gaussian smoothing of the edge shifts along the arc
+    (px, 1-px contour spacing); raised adaptively (up to 12 px) until the
+    smoothed shift precision reaches ``target_px``.
+    """
+    pts = resample_curve(pts, 1.0)
+    nrm, tan = _outward_normals(win, pts)
+    s_in, s_out = 10.0, 6.0
+    body = BodyModel(frame, pts)
+    sigma, k_o, k_c, coat = 1.0, 0.02, 0.02, 0.0
+    ns = NormalSampler(win, pts, nrm, tan, s_in, s_out)
+    N = len(pts)
+    step_sub = max(1, N // 60)
+    sub = np.arange(0, N, step_sub)
+
+    moved = pts.copy()
+    # physical prior on the attenuation: axis transmission vs background with zero
+    # offset, T = exp(-k 2 rho); k is bounded to [0.25, 4] x this estimate
+    k_est = _axis_attenuation(win, body, np.median(ns.I[:, -3:]))
+    k_lo, k_hi = (max(1e-4, 0.2 * k_est), min(2.0, 5.0 * k_est)) if np.isfinite(k_est) else (1e-4, 2.0)
+    k_o = float(np.clip(k_o, k_lo, k_hi))
+    # prior: the initial contour is an iso-level just below the background, so the
+    # OUTER surface lies at most a few px inside it (a stronger core edge further in
+    # must not capture the fit); relaxed once the model has settled
+    gs = _GlobalSearch(ns, body, sub, step_sub, smooth_px, -2.5, k_est, (k_lo, k_hi), coat_hint, s_in)
+
     for it in range(outer_iters):
         if it == 0:  # coarse grid (single layer), then model choice (globals on a subset)
             grid = [(np.log(k), np.log(sg)) for k in np.geomspace(k_lo * 1.01, k_hi * 0.99, 6)
                     for sg in (0.6, 1.2, 2.2)]
-            k_o, k_c, coat, sigma = choose_globals(np.array(min(grid, key=lambda p: cost(p, False))))
+            k_o, k_c, coat, sigma = gs.choose_globals(np.array(min(grid, key=lambda p: gs.cost(p, False))))
         elif it == 1:  # edges now close: refine the choice
-            k_o, k_c, coat, sigma = choose_globals(np.log([k_o, sigma]))
+            k_o, k_c, coat, sigma = gs.choose_globals(np.log([k_o, sigma]))
         body.set_coat(coat)
         Tf = ns.transmission(body, k_o, k_c, sigma)
-        delta, a, b, r = fit_shifts(ns, Tf, np.zeros(N), smooth_ab=smooth_ab, lo=lo_shift)
+        delta, a, b, r = fit_shifts(ns, Tf, np.zeros(N), smooth_ab=smooth_ab, lo=gs.lo_shift)
         # adaptive smoothing along the arc: per-normal shift precision from the
         # Gauss-Newton curvature; smooth enough to reach ~target_px (>= smooth_px)
         sig_d = _shift_sigma(ns, Tf, delta, b, r)
         s_eff = float(np.clip((np.median(sig_d) / target_px) ** 2 / (2 * np.sqrt(np.pi)), smooth_px, 12.0))
         delta = smooth_along(delta, s_eff)
-        state["smooth"] = s_eff
+        gs.smooth = s_eff
         # move the silhouette along the (fixed) sampling normals, rebuild the body
         moved = moved + delta[:, None] * nrm
-        lo_shift = -2.5 if it < 1 else -1.0
+        gs.lo_shift = -2.5 if it < 1 else -1.0
         if frame_update is not None and it < 2:
             frame = frame_update(moved)
-        body = BodyModel(frame, ndimage.gaussian_filter1d(moved, 2.0, axis=0, mode="nearest"), coat)
+        body = gs.body = BodyModel(frame, ndimage.gaussian_filter1d(moved, 2.0, axis=0, mode="nearest"), coat)
     rms = np.sqrt((r**2).mean(1))
     off = ((moved - pts) * nrm).sum(1)
     good = (b > 0) & (off > -s_in + 2) & (off < s_out - 1) & (rms < 5 * np.median(rms))

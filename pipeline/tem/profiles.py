@@ -13,8 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.tem.edges import (TipFrame, _Fail, curve_normals, flatten_background, initial_contour, locate_tip,
-                                refine_edges)
+from pipeline.tem.edges import (
+    TipFrame,
+    _Fail,
+    curve_normals,
+    flatten_background,
+    initial_contour,
+    locate_tip,
+    refine_edges,
+)
 from pipeline.tem.errors import ApexAtBorderError, NoTipError
 from pipeline.tem.reading import TemImage
 
@@ -83,25 +90,9 @@ def _fail(path, exc):
     return NoTipError(path, msg)
 
 
-def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto",
-                    refine="global") -> TipProfile:
-    """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
-
-    ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
-    "global" (then one global fit of all edge pixels, ``silhouette_fit.fit_silhouette``, on
-    b x b blocks of pixels finer than 0.2 nm, ``silhouette_fit.bin_factor``).
-    """
-    if refine not in ("normals", "global"):
-        raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
-    path = image.path or "<image>"
-    px = image.pixel_size
-    coat_hint = _coating_hint(coating, px, path)
-    hpx = profile_height / px
-    try:
-        coarse, flipped = locate_tip(image.data, 1.3 * hpx, orientation)
-    except _Fail as exc:
-        raise _fail(path, exc) from None
-    img = image.data[::-1] if flipped else image.data
+def _window_and_contour(img, coarse, hpx, path):
+    """(window, its origin in ``img``, flattened window, noise, initial contour, tip frame) of
+    ``extract_profile``."""
     H, W = img.shape
     # window: bounding box of the tip within 1.3 x profile_height of the apex, + margins;
     # grown where the outer contour runs into a window side (light coatings may be
@@ -134,7 +125,13 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
     if len(cont) < 10:
         raise NoTipError(path, "no tip in the image (edge too short near the apex)")
     _check_border(cont, win.shape, frame, hpx, path, r0, c0, H, W)
+    return win, origin, flat, noise, cont, frame
 
+
+def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine):
+    """(edge points, symmetry frame, edge model, extra edge-model entries, (basis, cov_c, normals) or
+    None) of ``extract_profile``: the global silhouette fit, or the per-normal fits where it is not
+    asked for or fails."""
     extra, uncertainty, gf = {}, None, None
     if refine == "global":
         from pipeline.tem.silhouette_fit import fit_silhouette
@@ -161,6 +158,31 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
         frame = _symmetry_frame(pts, frame, hpx)
         edge_model = dict(k_outer=fit.k_outer, k_core=fit.k_core, coat_px=fit.coat_px, sigma_px=fit.sigma_px,
                           rms_intensity=fit.rms_intensity, n_rejected=int((~fit.good).sum()))
+    return pts, frame, edge_model, extra, uncertainty
+
+
+def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto",
+                    refine="global") -> TipProfile:
+    """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
+
+    ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
+    "global" (then one global fit of all edge pixels, ``silhouette_fit.fit_silhouette``, on
+    b x b blocks of pixels finer than 0.2 nm, ``silhouette_fit.bin_factor``).
+    """
+    if refine not in ("normals", "global"):
+        raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
+    path = image.path or "<image>"
+    px = image.pixel_size
+    coat_hint = _coating_hint(coating, px, path)
+    hpx = profile_height / px
+    try:
+        coarse, flipped = locate_tip(image.data, 1.3 * hpx, orientation)
+    except _Fail as exc:
+        raise _fail(path, exc) from None
+    img = image.data[::-1] if flipped else image.data
+    win, origin, flat, noise, cont, frame = _window_and_contour(img, coarse, hpx, path)
+    pts, frame, edge_model, extra, uncertainty = _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint,
+                                                                 refine)
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
@@ -258,7 +280,58 @@ def _extent(x, z, levels, max_gap=4.0):
     return out
 
 
-def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
+MAX_AXIS_DEV = np.radians(1.5)  # rad: the mirror axis at most this far from the coarse axis
+
+
+def _mirror_residuals(p, tgt, nrm, tree, sel):
+    """Normal distances of the reflected points to the silhouette, and their
+    Jacobian w.r.t. (a, t) with the nearest silhouette points held (point-to-line
+    Gauss-Newton)."""
+    a, t = p
+    # reflect about the line x = a + t z (direction d = (t, 1) / |.|)
+    h = np.hypot(t, 1.0)
+    d = np.array([t, 1.0]) / h
+    dd = np.array([1.0, -t]) / h**3  # d(d)/dt
+    q = tgt[sel] - [a, 0.0]
+    qd = q @ d
+    refl = 2 * qd[:, None] * d - q + [a, 0.0]
+    _, j = tree.query(refl)
+    ok = (j > 0) & (j < len(tgt) - 1)
+    nj = nrm[j]
+    r = np.where(ok, np.einsum("ij,ij->i", refl - tgt[j], nj), np.nan)
+    d_a = np.array([2.0, 0.0]) - 2.0 * d[0] * d  # d(refl)/da
+    d_t = 2.0 * ((q @ dd)[:, None] * d + qd[:, None] * dd)  # d(refl)/dt
+    return r, np.column_stack([nj @ d_a, np.einsum("ij,ij->i", d_t, nj)])
+
+
+def _mirror_line(tgt, nrm, tree, sel, x, z, hpx):
+    """(a, t) of the mirror line x = a + t z of the silhouette ``tgt`` (tip frame, px) by
+    Gauss-Newton on ``_mirror_residuals`` (``_symmetry_frame``)."""
+    # start: the axis through the mean midpoint of cuts 0.3-1 x hpx up (the coarse
+    # apex of a blunt tip can sit anywhere on its flat bottom)
+    ext = _extent(x, z, np.linspace(0.3 * hpx, hpx, 20) + z.min())
+    ok = np.isfinite(ext[:, 0])
+    p = np.array([float(ext[ok].mean()) if ok.any() else 0.0, 0.0])
+    for it in range(9):
+        r, J = _mirror_residuals(p, tgt, nrm, tree, sel)
+        good = np.isfinite(r) & np.isfinite(J).all(1)
+        if good.sum() < 10:
+            break
+        if it >= 4:  # outliers (contamination, a notch) only once the axis is close
+            mad = 1.4826 * np.median(np.abs(r[good])) + 1e-9
+            good &= np.abs(r) <= max(4 * mad, 0.5)
+        Jg = J[good]
+        try:
+            step = np.linalg.solve(Jg.T @ Jg, -(Jg.T @ r[good]))
+        except np.linalg.LinAlgError:
+            break
+        p += step
+        if it >= 4 and abs(step[1]) < 1e-5 and abs(step[0]) < 1e-2:
+            break
+    return p
+
+
+def _symmetry_frame(pts, frame, hpx, max_dev=MAX_AXIS_DEV):
     """Axis = mirror line of the silhouette: the line about which the reflected edge
     points (up to ``profile_height`` above the lowest point) fall onto the silhouette,
     by Gauss-Newton on their normal distances (at most ``max_dev`` from the starting,
@@ -275,48 +348,7 @@ def _symmetry_frame(pts, frame, hpx, max_dev=np.radians(1.5)):
         nrm, _ = curve_normals(tgt, smooth=2.0)
         tree = cKDTree(tgt)
         sel = np.nonzero(z - z.min() <= hpx)[0]
-
-        def resid(p):
-            """Normal distances of the reflected points to the silhouette, and their
-            Jacobian w.r.t. (a, t) with the nearest silhouette points held (point-to-line
-            Gauss-Newton)."""
-            a, t = p
-            # reflect about the line x = a + t z (direction d = (t, 1) / |.|)
-            h = np.hypot(t, 1.0)
-            d = np.array([t, 1.0]) / h
-            dd = np.array([1.0, -t]) / h**3  # d(d)/dt
-            q = tgt[sel] - [a, 0.0]
-            qd = q @ d
-            refl = 2 * qd[:, None] * d - q + [a, 0.0]
-            _, j = tree.query(refl)
-            ok = (j > 0) & (j < len(tgt) - 1)
-            nj = nrm[j]
-            r = np.where(ok, np.einsum("ij,ij->i", refl - tgt[j], nj), np.nan)
-            d_a = np.array([2.0, 0.0]) - 2.0 * d[0] * d  # d(refl)/da
-            d_t = 2.0 * ((q @ dd)[:, None] * d + qd[:, None] * dd)  # d(refl)/dt
-            return r, np.column_stack([nj @ d_a, np.einsum("ij,ij->i", d_t, nj)])
-
-        # start: the axis through the mean midpoint of cuts 0.3-1 x hpx up (the coarse
-        # apex of a blunt tip can sit anywhere on its flat bottom)
-        ext = _extent(x, z, np.linspace(0.3 * hpx, hpx, 20) + z.min())
-        ok = np.isfinite(ext[:, 0])
-        p = np.array([float(ext[ok].mean()) if ok.any() else 0.0, 0.0])
-        for it in range(9):
-            r, J = resid(p)
-            good = np.isfinite(r) & np.isfinite(J).all(1)
-            if good.sum() < 10:
-                break
-            if it >= 4:  # outliers (contamination, a notch) only once the axis is close
-                mad = 1.4826 * np.median(np.abs(r[good])) + 1e-9
-                good &= np.abs(r) <= max(4 * mad, 0.5)
-            Jg = J[good]
-            try:
-                step = np.linalg.solve(Jg.T @ Jg, -(Jg.T @ r[good]))
-            except np.linalg.LinAlgError:
-                break
-            p += step
-            if it >= 4 and abs(step[1]) < 1e-5 and abs(step[0]) < 1e-2:
-                break
+        p = _mirror_line(tgt, nrm, tree, sel, x, z, hpx)
         off, t = p
         ang = float(np.clip(frame.angle + np.arctan(t), a0 - max_dev, a0 + max_dev))
         frame = TipFrame(frame.to_image(off, 0.0), ang)

@@ -49,15 +49,8 @@ def unit_to_metres(unit: str, where: str = "") -> float:
     return parse_quantity(f"1 {u}", "length", where)
 
 
-def read_tem_image(path, pixel_size=None, check_plausible=True) -> TemImage:
-    """Read ``path`` and return a :class:`TemImage` (data float, pixel size m, source).
-
-    ``pixel_size`` (m, or a string such as "0.25 nm") is used only when the file
-    has no calibration (or an implausible one).  ``check_plausible``: refuse pixel sizes outside
-    ``PLAUSIBLE_PIXEL`` (a tip-apex image; off for reading any micrograph).  Raises TemReadError / PixelSizeError / EmptyImageError
-    (ValueError subclasses) naming the file.
-    """
-    path = Path(path)
+def _read_file(path):
+    """(data, calibration (px_y, px_x) m or None, its source) of the image file by its suffix."""
     if not path.is_file():
         raise TemReadError(path, "file not found")
     if path.stat().st_size == 0:
@@ -71,7 +64,11 @@ def read_tem_image(path, pixel_size=None, check_plausible=True) -> TemImage:
         data, cal, source = _read_plain(path), None, ""
     else:
         raise TemReadError(path, f"unsupported image format {suffix!r} (use .tif, .dm3, .dm4, .png, .jpg)")
+    return data, cal, source
 
+
+def _checked_data(data, path):
+    """(grey float data with NaN/inf replaced, note): refuses empty, constant or non-finite images."""
     data = _to_grey(np.asarray(data), path)
     if data.size == 0 or data.ndim != 2 or min(data.shape) < 8:
         raise EmptyImageError(path, f"empty image (shape {data.shape})")
@@ -84,6 +81,30 @@ def read_tem_image(path, pixel_size=None, check_plausible=True) -> TemImage:
         data = np.where(finite, data, float(np.median(data[finite])))
     if float(data.max() - data.min()) <= 0:
         raise EmptyImageError(path, "empty image (all pixels have the same value)")
+    return data, note
+
+
+def _yaml_pixel_size(pixel_size, path, check_plausible):
+    """The tip YAML's tem.pixel_size (m), checked."""
+    px = parse_quantity(pixel_size, "length", str(path)) if isinstance(pixel_size, str) else float(pixel_size)
+    if not (0 < px < _MAX_TEM_PIXEL):
+        raise PixelSizeError(path, f"pixel size {px!r} m from the tip YAML is not a TEM pixel size")
+    if check_plausible and not _plausible(px):
+        raise PixelSizeError(path, _implausible(px, "tem.pixel_size of the tip YAML"))
+    return px
+
+
+def read_tem_image(path, pixel_size=None, check_plausible=True) -> TemImage:
+    """Read ``path`` and return a :class:`TemImage` (data float, pixel size m, source).
+
+    ``pixel_size`` (m, or a string such as "0.25 nm") is used only when the file
+    has no calibration (or an implausible one).  ``check_plausible``: refuse pixel sizes outside
+    ``PLAUSIBLE_PIXEL`` (a tip-apex image; off for reading any micrograph).  Raises TemReadError / PixelSizeError / EmptyImageError
+    (ValueError subclasses) naming the file.
+    """
+    path = Path(path)
+    data, cal, source = _read_file(path)
+    data, note = _checked_data(data, path)
 
     if check_plausible and cal is not None and not _plausible(min(cal)) and pixel_size is not None:
         note += (f"the file's calibration ({min(cal) * 1e9:.4g} nm per pixel) is implausible for a tip image: the tip "
@@ -93,11 +114,7 @@ def read_tem_image(path, pixel_size=None, check_plausible=True) -> TemImage:
         if pixel_size is None:
             raise PixelSizeError(path, "no pixel size: the file carries no length calibration "
                                        "and none was given (set tem.pixel_size in the tip YAML)")
-        px = parse_quantity(pixel_size, "length", str(path)) if isinstance(pixel_size, str) else float(pixel_size)
-        if not (0 < px < _MAX_TEM_PIXEL):
-            raise PixelSizeError(path, f"pixel size {px!r} m from the tip YAML is not a TEM pixel size")
-        if check_plausible and not _plausible(px):
-            raise PixelSizeError(path, _implausible(px, "tem.pixel_size of the tip YAML"))
+        px = _yaml_pixel_size(pixel_size, path, check_plausible)
         return TemImage(data, px, "tip YAML", str(path), note.rstrip("; "))
     px_y, px_x = cal
     if check_plausible and not _plausible(min(px_y, px_x)):

@@ -8,6 +8,8 @@ from scipy.spatial import cKDTree
 
 from pipeline.synth.tem_image import outer_radius
 
+HEIGHTS = np.linspace(1e-9, 6e-9, 11)  # default heights h (m) of the pull-off area errors
+
 __all__ = ["profile_errors", "force_errors", "reported_uncertainty", "coating_decision", "evaluate_case"]
 
 
@@ -57,16 +59,16 @@ def profile_errors(profile, truth, height):
                 axis_deg_err=float(ang - truth["rotation_deg"]))
 
 
-def force_errors(n_fit, Q_fit, truth, heights=np.linspace(1e-9, 6e-9, 11)):
+def force_errors(n_fit, Q_fit, truth, heights=HEIGHTS):
     """Relative error of the rigid Dugdale pull-off area pi (n h Q)^(2/n) (Eq. 12) vs truth, per h."""
-    from pipeline.fits import rigid_dugdale_area
+    from pipeline.fits.power_law import rigid_dugdale_area
 
     f_fit = rigid_dugdale_area(n_fit, Q_fit, heights)
     f_true = rigid_dugdale_area(truth["n"], truth["Q"], heights)
     return f_fit / f_true - 1.0
 
 
-def reported_uncertainty(profile, fit, heights=np.linspace(1e-9, 6e-9, 11), fit_height=6e-9):
+def reported_uncertainty(profile, fit, heights=HEIGHTS, fit_height=6e-9):
     """What the pipeline reports as its own uncertainty (SI), to judge an error against.
 
     Returns dict: sigma_n; sigma_force (largest relative SD over ``heights`` of the rigid
@@ -74,7 +76,7 @@ def reported_uncertainty(profile, fit, heights=np.linspace(1e-9, 6e-9, 11), fit_
     fit window of the predicted SD of each point's normal offset, from the edge covariance;
     NaN without one).
     """
-    from pipeline.fits import rigid_dugdale_log_gradient
+    from pipeline.fits.power_law import rigid_dugdale_log_gradient
 
     g = rigid_dugdale_log_gradient(fit.n, fit.Q, heights)
     sd_f = np.sqrt(np.einsum("hi,ij,hj->h", g, np.asarray(fit.cov_n_lnQ), g))
@@ -106,7 +108,7 @@ def evaluate_case(n, pixel_size, blur_sigma_px=1.0, edge_snr=20.0, rotation_deg=
     ``coating``: what the extraction is told ("auto", "none" or a thickness in m)."""
     import time
 
-    from pipeline.fits import fit_tip_profile
+    from pipeline.fits.profile_fit import fit_tip_profile
     from pipeline.synth.tem_image import render_tem_image
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import TemImage

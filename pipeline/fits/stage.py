@@ -1,0 +1,33 @@
+"""Stage 2's entry point (``python -m pipeline fit``): read the profile file, fit, write the fit file."""
+from __future__ import annotations
+
+from pipeline.fits.io import read_profile, write_fit_h5
+from pipeline.fits.profile_fit import fit_power_law
+from pipeline.fits.result import FitError
+
+
+def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") -> None:
+    """Fit the combined profile and each flank of ``profile_h5`` and the paraboloid (n held at 2) of
+    the combined profile; write ``out_h5`` (atomic; layout in ``pipeline.fits.io``)."""
+    prof, px = read_profile(profile_h5)
+    fits = {}
+    for name in ("combined", "left", "right"):
+        r, z, edge = prof[name]
+        try:
+            both = name == "combined"
+            fits[name] = fit_power_law(r, z, fit_height, S, pixel_size=px, groups=prof["flank"] if both else None,
+                                       flank=prof["flank"] if both else None,
+                                       image_chi2_red=prof["chi2_red"] if both else None,
+                                       image_n_pixels=prof["n_pixels"], **(edge or {}))
+        except FitError as exc:
+            if name == "combined":
+                raise FitError(f"{profile_h5}: {exc}") from None
+            fits[name] = None
+    r, z, edge = prof["combined"]
+    try:
+        para = fit_power_law(r, z, fit_height, S, pixel_size=px, groups=prof["flank"], flank=prof["flank"],
+                             fixed_n=2.0, image_chi2_red=prof["chi2_red"], image_n_pixels=prof["n_pixels"],
+                             **(edge or {}))
+    except FitError:
+        para = None
+    write_fit_h5(out_h5, fits, para, source=profile_h5, tip=tip, interval=interval)

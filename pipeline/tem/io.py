@@ -1,0 +1,139 @@
+"""Files of stage 1: the profile file it writes (:func:`write_profile_h5`) and its reader
+(:func:`read_profile`, used by stage 2): the only place the profile file's layout is spelled.
+
+Profile file layout: /image, /edge, /axis, /profile/{left,right,combined} (r, z, [flank],
+[offset_basis, normal_rz]; /profile/offset_cov), /asymmetry, /edge_model.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline import h5io
+
+__all__ = ["write_profile_h5", "read_profile"]
+
+
+def write_profile_h5(out_h5, image, profile, tip="", interval=""):
+    """HDF5 layout: /image, /edge, /axis, /profile/{left,right,combined}, /asymmetry, /edge_model."""
+    with h5io.atomic_h5(out_h5, stage="tem_profiles", tip=tip, interval=interval, source=str(image.path),
+                        profile_height=profile.profile_height) as f:
+        _write_image_edge_axis(f, image, profile)
+        _write_profile(f, profile)
+        _write_edge_model(f, image, profile)
+
+
+def _write_image_edge_axis(f, image, profile):
+    """Groups /image, /edge and /axis."""
+    w = h5io.write_dataset
+    g = h5io.create_group(f, "image")
+    w(g, "pixel_size", image.pixel_size, "m", "pixel size in use", source=image.source)
+    w(g, "pixel_size_source", image.source, "1", "where the pixel size came from")
+    w(g, "shape", np.array(image.data.shape), "pixel")
+    w(g, "path", str(image.path), "1")
+    if image.note:
+        g.attrs["note"] = image.note
+    g = h5io.create_group(f, "edge", description="outer silhouette, sub-pixel")
+    w(g, "points_image", profile.edge_px, "pixel", "(row, col) in the image, pixel centres at integers")
+    w(g, "x", profile.x, "m", "lateral tip coordinate (signed, from the axis)")
+    w(g, "z", profile.z, "m", "height above the apex")
+    w(g, "flank", profile.flank.astype(np.int8), "1", "-1 left, +1 right")
+    g = h5io.create_group(f, "axis")
+    w(g, "apex_image", profile.apex_px, "pixel", "apex (row, col) in the image")
+    w(g, "direction_image", profile.axis_px, "1", "unit vector (drow, dcol) from the apex up the tip")
+    w(g, "rotation", profile.angle, "rad", "tilt of the axis, counter-clockwise, apex-down view")
+    w(g, "orientation", profile.orientation, "1", "apex pointing down or up in the image")
+
+
+def _write_profile(f, profile):
+    """Groups /profile/{left,right,combined} (with the edge covariance) and /asymmetry."""
+    w = h5io.write_dataset
+    pg = h5io.create_group(f, "profile", description="z(r), apex at z = 0, z away from the sample")
+    if profile.offset_cov is not None:
+        w(pg, "offset_cov", profile.offset_cov, "m^2",
+          "covariance of the edge-offset B-spline coefficients c_k (silhouette fit, marginal)")
+    for which, name in (("left", "left"), ("right", "right"), ("both", "combined")):
+        i = profile.flank_index(which)
+        sg = h5io.create_group(pg, name)
+        w(sg, "r", np.abs(profile.x[i]), "m", "distance from the axis" + (", both flanks" if which == "both" else ""))
+        w(sg, "z", profile.z[i], "m", "height above the apex")
+        if which == "both":
+            w(sg, "flank", profile.flank[i].astype(np.int8), "1", "-1 left, +1 right")
+        if profile.offset_basis is not None:
+            w(sg, "offset_basis", profile.offset_basis[i], "1",
+              "normal offset of each point = offset_basis @ c (c: see ../offset_cov)")
+            w(sg, "normal_rz", profile.normal_rz[i], "1", "outward unit normal (n_r, n_z) of each point")
+    g = h5io.create_group(f, "asymmetry")
+    w(g, "mean", profile.asymmetry_mean, "m", "mean r_right - r_left at equal z")
+    w(g, "rms", profile.asymmetry_rms, "m", "RMS of r_right - r_left at equal z")
+
+
+def _write_edge_model(f, image, profile):
+    """Group /edge_model: the fitted Beer-Lambert edge model, its coating test and the silhouette fit."""
+    w = h5io.write_dataset
+    g = h5io.create_group(f, "edge_model", description="fitted Beer-Lambert edge model")
+    em = profile.edge_model
+    w(g, "attenuation_outer", em["k_outer_per_m"], "1/m")
+    w(g, "attenuation_core", em["k_core_per_m"], "1/m")
+    w(g, "coating_thickness", em["coating_thickness"], "m", "0 = single layer")
+    w(g, "blur_sigma", em["blur_sigma"], "m", "Gaussian blur sigma (incl. pixel box)")
+    w(g, "rms_intensity", em["rms_intensity"], "1", "RMS intensity residual relative to the background")
+    w(g, "n_rejected", em["n_rejected"], "1", "edge points rejected")
+    g.attrs["refine"] = em.get("refine", "normals")
+    flags = list(em.get("global_flags", []))
+    w(g, "flags", np.array(flags, dtype=object) if flags else np.array([], dtype=object), "1",
+      "edge-model warnings (e.g. coating not identifiable)")
+    ct = em.get("coating_test") or {}
+    if ct:
+        _write_coating_test(g, ct, image.pixel_size)
+    if "global_chi2_red" in em:
+        w(g, "chi2_reduced", em["global_chi2_red"], "1", "reduced chi^2 of the silhouette fit")
+        w(g, "n_pixels", em["global_n_pixels"], "1", "pixels in the silhouette fit")
+        w(g, "binning", em.get("global_binning", 1), "1", "block size of the silhouette fit (b x b pixels)")
+
+
+def _write_coating_test(g, ct, px):
+    """The coating test's decision and numbers (in /edge_model)."""
+    w = h5io.write_dataset
+    g.attrs["coating_model"] = ct.get("model", "")
+    g.attrs["coating_ambiguous"] = bool(ct.get("ambiguous", False))
+    if "skipped" in ct:
+        g.attrs["coating_test_skipped"] = ct["skipped"]
+    if "note" in ct:
+        g.attrs["coating_note"] = ct["note"]
+    if "dchi2" in ct:
+        w(g, "coating_dchi2", ct["dchi2"], "1",
+          "chi^2(single layer) - chi^2(best coated fit); a layer is accepted above the threshold",
+          threshold=ct.get("threshold", np.nan))
+        w(g, "coating_test_thickness", ct["thickness_px"] * px, "m", "layer thickness of the best coated fit")
+        w(g, "coating_test_outer_shift", ct["outer_shift_px"] * px, "m",
+          "mean outward shift of the coated fit's outer edge from the single layer's")
+        w(g, "coating_test_contrast_ratio", ct["contrast_ratio"], "1",
+          "attenuation ratio outer layer / core of the best coated fit")
+    if ct.get("ambiguous"):
+        w(g, "coating_ambiguous_shift", ct["ambiguous_shift_px"] * px, "m",
+          "largest outward edge shift of a light layer that fits within the threshold of none "
+          "(half of it is added to the edge covariance as a common offset SD)")
+
+
+def read_profile(profile_h5):
+    """The profile file: ({"left"|"right"|"combined": (r, z, edge), "flank", "chi2_red", "n_pixels"},
+    pixel size (m)); edge is None or dict(edge_basis, edge_cov, normal_rz).  h5py's errors
+    (FileNotFoundError, OSError, KeyError) pass through for the caller to word."""
+    import h5py
+
+    with h5py.File(profile_h5, "r") as f:
+        g = f["profile"]
+        out = {}
+        cov = g["offset_cov"][()] if "offset_cov" in g else None
+        for name in ("left", "right", "combined"):
+            sg = g[name]
+            edge = None
+            if cov is not None and "offset_basis" in sg:
+                edge = dict(edge_basis=sg["offset_basis"][()], edge_cov=cov, normal_rz=sg["normal_rz"][()])
+            out[name] = (sg["r"][()], sg["z"][()], edge)
+        out["flank"] = g["combined"]["flank"][()]
+        em = f.get("edge_model")
+        out["chi2_red"] = float(em["chi2_reduced"][()]) if em is not None and "chi2_reduced" in em else None
+        out["n_pixels"] = float(em["n_pixels"][()]) if em is not None and "n_pixels" in em else None
+        px = float(f["image"]["pixel_size"][()])
+        return out, px

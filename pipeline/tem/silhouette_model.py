@@ -1,0 +1,384 @@
+"""Forward model of the silhouette fit (``pipeline.tem.silhouette_fit``, its doc): the meridian's
+B-spline offsets, the body's cross-section tables, the Beer-Lambert image of the body with pixel
+integration and blur, and the binning of the image."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage, sparse
+from scipy.spatial import cKDTree
+
+from pipeline.tem.projection import chord, chord_sq, core_radius_sq_table
+
+# pixel integration: the projected thickness has a square-root kink at a silhouette, which
+# the midpoint rule samples poorly; pixels whose centre lies within _FINE_PX of a silhouette
+# (the kink is inside them) are averaged over 8 x 8 sub-samples, those up to _BAND_PX over
+# 4 x 4 (smooth there), the rest at the centre.  4 x 4 everywhere left a model error on a
+# flat face along a pixel row that a thin phantom layer absorbed (noise-free n 6 at 0.5 nm px:
+# chi^2 -592 with the layer; the edge 0.48 nm out) and biased n there by +0.08.
+_SS_FINE, _SS = 8, 4
+_FINE_PX, _BAND_PX = 1.0, 2.0
+
+
+def _sub_offsets(m):
+    """(drow, dcol) of m x m sub-samples of a pixel (centre at 0)."""
+    sub = (np.arange(m) + 0.5) / m - 0.5
+    return np.column_stack([np.repeat(sub, m), np.tile(sub, m)])
+KNOT_NM = 1.2  # knot spacing of the edge-offset spline (nm)
+
+
+def _bspline(u):
+    """Cardinal cubic B-spline (support |u| < 2)."""
+    a = np.abs(u)
+    out = np.where(a < 1, 2 / 3 - a**2 + 0.5 * a**3, 0.0)
+    return np.where((a >= 1) & (a < 2), (2 - a) ** 3 / 6, out)
+
+
+def reference_curve(pts_tip, step=0.25, smooth_px=2.0):
+    """Smoothed polyline (x, z) (tip frame, px) -> S (signed arc length, apex 0), x, z, nx, nz."""
+    x, z = pts_tip
+    if x[0] > x[-1]:
+        x, z = x[::-1], z[::-1]
+    seg = np.hypot(np.diff(x), np.diff(z))
+    keep = np.concatenate([[True], seg > 1e-9])
+    x, z = x[keep], z[keep]
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(z)))])
+    si = np.arange(0.0, s[-1], step)
+    x, z = np.interp(si, s, x), np.interp(si, s, z)
+    if smooth_px > 0:
+        x = ndimage.gaussian_filter1d(x, smooth_px / step, mode="nearest")
+        z = ndimage.gaussian_filter1d(z, smooth_px / step, mode="nearest")
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(z)))])
+    S = s - s[int(np.argmin(z))]
+    tx, tz = np.gradient(x, s), np.gradient(z, s)
+    nn = np.hypot(tx, tz) + 1e-12
+    return S, x, z, tz / nn, -tx / nn
+
+
+class _Body:
+    """Cross-section tables of the body bounded by a (left -> right) meridian polyline.
+
+    At height z the section is the disc spanning the outermost points of the curve at or
+    below z (cen +- rho), minus a hole on each side of the lowest point where the curve
+    rises above z in between (a dimple or a valley beyond a ridge, as a disc of its own).
+    The holes make inward and outward wiggles of a flat face equally visible: with the
+    filled envelope alone, a dimple is invisible while a bump is not, and noise then
+    pushes the fitted apex outwards (n biased low on blunt tips)."""
+
+    dz = 0.1
+
+    def __init__(self, x, z, coat):
+        i0 = int(np.argmin(z))
+        halves = [(x[: i0 + 1][::-1], z[: i0 + 1][::-1]), (x[i0:], z[i0:])]  # apex -> outwards
+        z0 = z[i0]
+        z_out = [np.minimum.accumulate(zh[::-1])[::-1] for _, zh in halves]  # outermost crossing
+        top = max(min(z_out[0][-1], z_out[1][-1]), z0 + 2 * self.dz)
+        self.zg = np.arange(z0, top + 1e-9, self.dz)
+        xo = [np.interp(self.zg, zo + 1e-9 * np.arange(zo.size), xh) for zo, (xh, _) in zip(z_out, halves)]
+        self.rho = np.maximum(0.5 * (xo[1] - xo[0]), 0.0)
+        self.cen = 0.5 * (xo[1] + xo[0])
+        self.holes = [h for h in (self._hole(xh, zh) for xh, zh in halves) if h is not None]
+        self.set_coat(coat)
+
+    def _hole(self, xh, zh):
+        """(radius, centre) tables of the gap between the first and the last crossing of
+        each level along one half (apex -> outwards), or None if the half is monotone."""
+        rm = np.maximum.accumulate(zh)
+        dip = np.nonzero(zh < rm)[0]
+        if dip.size == 0:
+            return None
+        # only the levels spanned by the dips, only the points up to the last dip
+        lv = (self.zg >= zh[dip].min() - self.dz) & (self.zg <= rm[dip].max() + self.dz)
+        zg = self.zg[lv]
+        xh, zh = xh[: dip[-1] + 2], zh[: dip[-1] + 2]
+        below = zh[None, :] <= zg[:, None]  # (levels, points)
+        up = below[:, :-1] & ~below[:, 1:]  # leaves the sublevel set between i and i+1
+        down = ~below[:, :-1] & below[:, 1:]  # re-enters it
+        has = down.any(1) & up.any(1)
+        if not has.any():
+            return None
+        i_up = np.argmax(up, 1)
+        i_dn = down.shape[1] - 1 - np.argmax(down[:, ::-1], 1)
+        has &= i_dn > i_up
+
+        def cross(i):
+            za, zb = zh[i], zh[i + 1]
+            t = np.clip((zg - za) / np.where(zb != za, zb - za, 1.0), 0.0, 1.0)
+            return xh[i] + t * (xh[i + 1] - xh[i])
+
+        xa, xb = cross(i_up), cross(i_dn)
+        has_lv = np.nonzero(lv)[0][has]
+        if has_lv.size == 0:
+            return None
+        rad = np.full(self.zg.size, -1.0)
+        cen = np.zeros(self.zg.size)
+        rad[lv] = np.where(has, 0.5 * np.abs(xb - xa), -1.0)
+        cen[lv] = np.where(has, 0.5 * (xa + xb), xa)
+        # levels whose interpolation can see the hole
+        lo, hi = max(0, has_lv[0] - 1), min(self.zg.size - 1, has_lv[-1] + 1)
+        return rad, cen, lo, hi
+
+    def set_coat(self, coat):
+        self.coat = float(coat)
+        # squared radii for the interpolation (no material: 0); the core on its own grid, which
+        # starts at its apex, coat above the outer one (continuous in coat and in the shape)
+        self.rho2 = np.square(np.maximum(self.rho, 0.0))
+        self.zc0 = self.zg[0] + self.coat
+        self.rho_c2 = core_radius_sq_table(self.rho2, self.dz, self.coat) if self.coat > 0 else self.rho2
+
+    def chords(self, x, z, core=True):
+        """(t_outer, t_core) at tip-frame points (px); t_core only if ``core``."""
+        f = (z - self.zg[0]) / self.dz
+        below = f < 0
+        f = np.clip(f, 0.0, self.zg.size - 1.000001)
+        i = f.astype(np.intp)
+        w = f - i
+        cen = self.cen[i] * (1 - w) + self.cen[i + 1] * w
+        xx = x - cen
+        # rho^2 is interpolated between the table rows, not rho: it is linear in z at a
+        # paraboloidal apex and far less curved than rho(z) ~ z^(1/n) on a flatter one, whose
+        # radius jumps from 0 to the face within a fraction of a row (rho interpolated
+        # linearly put a noise-free coated n 4 apex 0.045 nm off, rho^2 0.01 nm)
+        rho2 = self.rho2[i] * (1 - w) + self.rho2[i + 1] * w
+        t_o = np.where(below, 0.0, chord_sq(rho2, xx))
+        for rad, hc, lo, hi in self.holes:
+            j = np.nonzero((i >= lo) & (i < hi) & ~below)[0]
+            ij, wj = i[j], w[j]
+            r_h = rad[ij] * (1 - wj) + rad[ij + 1] * wj
+            c_h = hc[ij] * (1 - wj) + hc[ij + 1] * wj
+            t_o[j] = np.maximum(t_o[j] - chord(r_h, x[j] - c_h), 0.0)
+        if not core or self.coat <= 0:
+            return t_o, t_o
+        fc = (z - self.zc0) / self.dz
+        below_c = fc < 0
+        fc = np.clip(fc, 0.0, self.rho_c2.size - 1.000001)
+        ic = fc.astype(np.intp)
+        wc = fc - ic
+        rc2 = self.rho_c2[ic] * (1 - wc) + self.rho_c2[ic + 1] * wc
+        return t_o, np.where(below_c, 0.0, chord_sq(rc2, xx))
+
+
+class _Problem:
+    """Fixed pixel geometry, data and the forward model of one silhouette fit."""
+
+    def __init__(self, img, frame, curve, hpx, noise, knot, sigma_max=4.0):
+        self.img, self.frame = img, frame
+        self.knot = knot
+        self.set_reference(curve)
+        S, x0, z0, nx, nz = curve
+        self.ztop = 1.02 * hpx
+        H, W = img.shape
+        # residual pixels: band around the initial curve, z <= ztop
+        out_m, in_m = 3.0 * 1.5 + 4.0, 3.0 * 1.5 + 14.0
+        sel = z0 <= self.ztop + out_m + 2
+        ci = frame.to_image(x0[sel], z0[sel])
+        mrg = int(np.ceil(out_m + in_m + 4 * sigma_max + 4))
+        r_lo = int(max(0, np.floor(ci[:, 0].min()) - mrg))
+        r_hi = int(min(H, np.ceil(ci[:, 0].max()) + mrg + 1))
+        c_lo = int(max(0, np.floor(ci[:, 1].min()) - mrg))
+        c_hi = int(min(W, np.ceil(ci[:, 1].max()) + mrg + 1))
+        self.shape = (r_hi - r_lo, c_hi - c_lo)
+        RR, CC = np.mgrid[r_lo:r_hi, c_lo:c_hi].astype(float)
+        P = np.column_stack([RR.ravel(), CC.ravel()])
+        px, pz = frame.to_tip(P)
+        # distance to the curve's vertices 1 px apart (it is sampled every 0.25 px): at the
+        # band limits (>= 8 px away) the excess over the true distance is < 0.02 px
+        dec = max(1, int(round(1.0 / max(S[1] - S[0], 1e-9))))
+        tree = cKDTree(np.column_stack([x0[::dec], z0[::dec]]))
+        dist, _ = tree.query(np.column_stack([px, pz]), distance_upper_bound=in_m + 1)
+        body0 = _Body(x0, z0, 0.0)
+        t0, _ = body0.chords(px, pz, core=False)
+        inside = t0 > 0
+        sd = np.where(inside, -dist, dist)
+        use = (sd <= out_m) & (sd >= -in_m) & (pz <= self.ztop)
+        # blur support must stay inside the rectangle (unless it is the image border)
+        bm = int(np.ceil(4 * sigma_max + 1))
+        rl, cl = RR.ravel() - r_lo, CC.ravel() - c_lo
+        use &= ((rl >= bm) | (r_lo == 0)) & ((rl < self.shape[0] - bm) | (r_hi == H))
+        use &= ((cl >= bm) | (c_lo == 0)) & ((cl < self.shape[1] - bm) | (c_hi == W))
+        self.idx = np.nonzero(use)[0]
+        if self.idx.size < 50:
+            raise ValueError("too few pixels near the edge for the silhouette fit")
+        need = np.zeros(self.shape, bool)
+        need.ravel()[self.idx] = True
+        need = ndimage.binary_dilation(need, np.ones((3, 3), bool), int(np.ceil(4 * sigma_max)) + 2)
+        self.need = np.nonzero(need.ravel())[0]
+        self.nx_, self.nz_ = px[self.need], pz[self.need]
+        # position of each residual pixel within the need list
+        pos = np.full(P.shape[0], -1)
+        pos[self.need] = np.arange(self.need.size)
+        self.res_in_need = pos[self.idx]
+        self.I = img[r_lo:r_hi, c_lo:c_hi].ravel()[self.idx]
+        rn = (RR.ravel()[self.idx] - 0.5 * (r_lo + r_hi)) / max(H, 1)
+        cn = (CC.ravel()[self.idx] - 0.5 * (c_lo + c_hi)) / max(W, 1)
+        self.rn, self.cn = rn, cn
+        self.rows, self.cols = RR.ravel()[self.idx], CC.ravel()[self.idx]
+        self.pz_res = pz[self.idx]
+        self.px_res = px[self.idx]
+        # sub-pixel offsets in the tip frame (rotation only)
+        self.sub = [(off @ frame.v, off @ frame.u) for off in (_sub_offsets(_SS_FINE), _sub_offsets(_SS))]
+        self.noise = noise
+        self.w = np.ones(self.idx.size)
+        self.map_c = None
+
+    def set_reference(self, curve):
+        """Reference meridian (S, x, z, nx, nz) and its B-spline basis (knots every D)."""
+        S, x0, z0, nx, nz = curve
+        self.S, self.x0, self.z0, self.nx, self.nz = S, x0, z0, nx, nz
+        k_lo = int(np.floor(S[0] / self.knot)) - 1
+        k_hi = int(np.ceil(S[-1] / self.knot)) + 1
+        self.kc = np.arange(k_lo, k_hi + 1)
+        self.K = self.kc.size
+        idx, val = self.spline_rows(S)
+        self.Bc = sparse.csr_matrix((val.ravel(), (np.repeat(np.arange(S.size), 4), idx.ravel())),
+                                    shape=(S.size, self.K)).toarray()
+        self.map_c = None
+
+    def rebase(self, c):
+        """Make the curve of offsets ``c`` the new reference (offsets then start at 0): the
+        smoothness penalty then acts relative to the fitted shape, not the contour's."""
+        x, z = self.curve(c)
+        self.set_reference(reference_curve((x, z), step=float(self.S[1] - self.S[0]), smooth_px=0.0))
+
+    # ------------------------------------------------------------------ geometry
+    def curve(self, c):
+        d = self.Bc @ c
+        return self.x0 + d * self.nx, self.z0 + d * self.nz
+
+    def spline_rows(self, S):
+        """Sparse B-spline rows at arc positions S: (index (N, 4) into c, value (N, 4))."""
+        u = S / self.knot
+        j0 = np.floor(u).astype(int) - 1
+        j = j0[:, None] + np.arange(4)[None, :]
+        val = _bspline(u[:, None] - j)
+        return np.clip(j - self.kc[0], 0, self.K - 1), val
+
+    def update_pixel_map(self, c, coat):
+        """Nearest curve point of every needed pixel: B-spline rows of the residual pixels
+        (local-translation Jacobian) and the distance map that selects the pixels to
+        supersample."""
+        x, z = self.curve(c)
+        # only residual pixels can be near a silhouette (outer edge: inside the band by
+        # construction; core: coat <= 12 px < inner band width)
+        # the curve is sampled every 0.25 px; every 2nd point is close enough (distance error
+        # <= 0.13 px, arc position <= 0.25 px)
+        dec = 2
+        xs, zs = x[::dec], z[::dec]
+        j_old = self._j_res if getattr(self, "_j_ref", None) is self.S else None
+        if j_old is None:
+            d, j = cKDTree(np.column_stack([xs, zs])).query(np.column_stack([self.px_res, self.pz_res]))
+        else:
+            # the curve moved < 1 px since the last map: search +-4 px of arc around the
+            # old nearest point; pixels whose nearest point lies on the window edge are
+            # looked up in a k-d tree
+            w = 8
+            cand = np.clip(j_old[:, None] + np.arange(-w, w + 1)[None, :], 0, xs.size - 1)
+            d2 = (xs[cand] - self.px_res[:, None]) ** 2 + (zs[cand] - self.pz_res[:, None]) ** 2
+            k = np.argmin(d2, axis=1)
+            rows = np.arange(k.size)
+            j, d = cand[rows, k], np.sqrt(d2[rows, k])
+            redo = np.nonzero(((k == 0) & (j > 0)) | ((k == 2 * w) & (j < xs.size - 1)))[0]
+            if redo.size:
+                d[redo], j[redo] = cKDTree(np.column_stack([xs, zs])).query(
+                    np.column_stack([self.px_res[redo], self.pz_res[redo]]))
+        self._j_res, self._j_ref = j, self.S
+        self.dist_need = np.full(self.need.size, np.inf)
+        self.dist_need[self.res_in_need] = d
+        idx, val = self.spline_rows(self.S[::dec][j])
+        self.u_res = self.S[::dec][j] / self.knot - self.kc[0]  # knot coordinate of each pixel
+        n = idx.shape[0]
+        self.Phi = sparse.csr_matrix((val.ravel(), (np.repeat(np.arange(n), 4), idx.ravel())), shape=(n, self.K))
+        self.map_c, self.map_coat = c.copy(), float(coat)
+
+    def map_stale(self, c, coat):
+        # B-splines are >= 0 and sum to 1: no curve point moved more than max |dc|
+        return (self.map_c is None or np.max(np.abs(c - self.map_c)) > 0.6
+                or abs(coat - self.map_coat) > 0.6)
+
+    # ------------------------------------------------------------------ forward model
+    def chords(self, c, coat, sub=None):
+        """Chords (t_o, t_c) at the needed pixel centres, and at sub-samples of the pixels near
+        the outer or core silhouette (T is averaged there, where it has the square-root kink):
+        8 x 8 within _FINE_PX, 4 x 4 up to _BAND_PX.  Returns (t_o, t_c, bands), bands a list
+        of (pixel indices, sub-sample t_o, sub-sample t_c, sub-samples per pixel).  ``sub``
+        (indices into the needed pixels): only those, with band indices local to ``sub``."""
+        if self.map_stale(c, coat):
+            self.update_pixel_map(c, coat)
+        x, z = self.curve(c)
+        body = _Body(x, z, coat)
+        xc, zc, dist = self.nx_, self.nz_, self.dist_need
+        if sub is not None:
+            xc, zc, dist = xc[sub], zc[sub], dist[sub]
+        t_o, t_c = body.chords(xc, zc)
+        # the bands are fixed between updates of the distance map (the model must be smooth
+        # in the parameters for the finite differences)
+        sd = np.where(t_o > 0, -dist, dist)
+        near = np.abs(sd)
+        if self.map_coat > 0:
+            near = np.minimum(near, np.abs(sd + self.map_coat))
+        bands = []
+        for (sx, sz), sel in zip(self.sub, (near < _FINE_PX, (near >= _FINE_PX) & (near < _BAND_PX))):
+            bi = np.nonzero(sel)[0]
+            xs = (xc[bi, None] + sx[None, :]).ravel()
+            zs = (zc[bi, None] + sz[None, :]).ravel()
+            s_o, s_c = body.chords(xs, zs)
+            bands.append((bi, s_o, s_c, sx.size))
+        return (t_o, t_c, bands)
+
+    @staticmethod
+    def transmission(ch, k_o, k_c):
+        t_o, t_c, bands = ch
+        T = np.exp(-(k_o * t_o + (k_c - k_o) * t_c))
+        for bi, s_o, s_c, m in bands:
+            if bi.size:
+                T[bi] = np.exp(-(k_o * s_o + (k_c - k_o) * s_c)).reshape(-1, m).mean(1)
+        return T
+
+    def blurred(self, T, sigma):
+        """Columns (Npix, 3): blur(T), blur(T) x row, blur(T) x col at the residual pixels."""
+        img = np.ones(self.shape[0] * self.shape[1])
+        img[self.need] = T
+        img = img.reshape(self.shape)
+        if sigma > 0.05:
+            img = ndimage.gaussian_filter(img, sigma, mode="nearest", truncate=4.0)
+        bt = img.ravel()[self.idx]
+        return np.column_stack([bt, bt * self.rn, bt * self.cn])
+
+    def linear(self, B):
+        A = B * self.w[:, None]
+        return np.linalg.solve(A.T @ A, A.T @ (self.I * self.w))  # 3 x 3 normal equations
+
+    def set_weights(self, model):
+        """Poisson weights 1/sd with sd = noise x sqrt(model / background) (flattened image)."""
+        m = np.clip(model, 0.05, None)
+        self.w = 1.0 / (self.noise * np.sqrt(m))
+
+
+def _axis_attenuation(img, frame, curve, background=1.0):
+    """k (1/px) from the transmission on the axis 6-30 px above the apex (blur-free zone)."""
+    S, x, z, _, _ = curve
+    body = _Body(x, z, 0.0)
+    zg = body.zg
+    ok = (body.rho > 5) & (zg - zg[0] > 6) & (zg - zg[0] < 30)
+    if ok.sum() < 5:
+        return float("nan")
+    pts = frame.to_image(body.cen[ok], zg[ok])
+    I = ndimage.map_coordinates(img, pts.T, order=1, mode="nearest")
+    T = np.clip(I / background, 1e-3, 0.999)
+    return float(np.median(-np.log(T) / (2 * body.rho[ok])))
+
+
+def _bin(img, b):
+    """b x b block average (trailing rows/cols dropped); binned pixel i = fine b i + (b - 1)/2."""
+    if b <= 1:
+        return img
+    h, w = (img.shape[0] // b) * b, (img.shape[1] // b) * b
+    return img[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
+
+
+def bin_factor(pixel_size, min_px=0.2e-9):
+    """Block size for the fit: pixels finer than ``min_px`` are averaged in b x b blocks
+    (the edge is then still sampled at <= 2 x min_px; precision is set by the noise and
+    the number of pixels along the edge, not by their size)."""
+    if not pixel_size:
+        return 1
+    return int(max(1, np.floor(min_px / pixel_size + 1e-6)))
