@@ -117,6 +117,26 @@ def _r_h(fit):
     return float((fit.n * fit.Q * fit.fit_height) ** (1.0 / fit.n))
 
 
+def _least_squares(rs, zs, hs, side, fixed_n, loss, sc):
+    """The least-squares fit of ``_fit_power_law`` in scaled units (``sc``): scipy's result,
+    all model parameters at its optimum, the indices of the free ones."""
+    p0, lb, ub = _start(rs, zs, hs)
+    free = ([0] if fixed_n is None else []) + [1, 2] + ([3, 4] if side is not None else [])
+
+    def full(q):
+        v = p0.copy()
+        if fixed_n is not None:
+            v[0] = float(fixed_n)
+        v[free] = q
+        return v
+
+    kw = {} if loss is None else dict(loss=loss[0], f_scale=loss[1] / sc)  # robust: screening only
+    res = optimize.least_squares(lambda q: _residuals(full(q), rs, zs, hs, side), p0[free],
+                                 bounds=(np.take(lb, free), np.take(ub, free)), x_scale="jac", method="trf",
+                                 max_nfev=500, **kw)
+    return res, full(res.x), free
+
+
 def _fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_scale=1e-9,
                    edge_basis=None, edge_cov=None, normal_rz=None, fixed_n=None, flank=None, loss=None,
                    systematic_px=0.0) -> PowerLawFit:
@@ -144,21 +164,7 @@ def _fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r
     # work in nm-ish scaled units for conditioning
     sc = r_scale
     rs, zs, hs = r / sc, z / sc, h / sc
-    p0, lb, ub = _start(rs, zs, hs)
-    free = ([0] if fixed_n is None else []) + [1, 2] + ([3, 4] if side is not None else [])
-
-    def full(q):
-        v = p0.copy()
-        if fixed_n is not None:
-            v[0] = float(fixed_n)
-        v[free] = q
-        return v
-
-    kw = {} if loss is None else dict(loss=loss[0], f_scale=loss[1] / sc)  # robust: screening only
-    res = optimize.least_squares(lambda q: _residuals(full(q), rs, zs, hs, side), p0[free],
-                                 bounds=(np.take(lb, free), np.take(ub, free)), x_scale="jac", method="trf",
-                                 max_nfev=500, **kw)
-    pf = full(res.x)
+    res, pf, free = _least_squares(rs, zs, hs, side, fixed_n, loss, sc)
     n, lrh, z0s = pf[:3]
     e = res.fun
     flags = []

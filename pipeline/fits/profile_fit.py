@@ -8,6 +8,32 @@ from pipeline.fits.result import FitError, PowerLawFit
 from pipeline.fits.screening import TURN_BACK_MAX, TURN_BACK_PX, TURN_BACK_TOL, _one_flank_runs, _turned_back, _where
 
 
+def _systematic_px(image_chi2_red, image_n_pixels):
+    """The smooth edge error (px per flank) the image fit's reduced chi^2 leaves beyond noise."""
+    sys_px = 0.0
+    if image_chi2_red is not None and np.isfinite(image_chi2_red):
+        # chi2_red of a model-true image scatters by sqrt(2 / N) about 1: 3 SD of that are noise
+        allow = 3.0 * np.sqrt(2.0 / image_n_pixels) if image_n_pixels else 0.0
+        sys_px = EDGE_SYSTEMATIC_PX * min(1.0, float(np.sqrt(max(float(image_chi2_red) - 1.0 - allow, 0.0))))
+    return sys_px
+
+
+def _screened_out(robust, r, z, side, win, r_scale, pixel_size, notes, flags):
+    """The points screened out (contamination on one flank, an edge turning back) against the
+    ``robust`` fit; appends to ``notes`` and ``flags``."""
+    bump = _one_flank_runs(robust, r, z, side, win, r_scale)
+    if bump.any():
+        notes.append(f"contamination on the {_where(r, z, side, bump)} (stands out of that flank only, "
+                     f"{bump.sum()} points): left out, the fit rests on the unaffected points")
+    back = _turned_back(r, z, side, win & ~bump, tol=max(TURN_BACK_TOL, TURN_BACK_PX * (pixel_size or 0.0)))
+    if back.any():
+        notes.append(f"edge turns back (radius shrinking with height) at {back.sum()} of {win.sum()} points "
+                     f"({_where(r, z, side, back)}): left out")
+        if back.sum() > TURN_BACK_MAX * max(win.sum(), 1):
+            flags.append("edge_turns_back")
+    return bump, back
+
+
 def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_scale=1e-9,
                   edge_basis=None, edge_cov=None, normal_rz=None, fixed_n=None, flank=None, screen=True,
                   image_chi2_red=None, image_n_pixels=None) -> PowerLawFit:
@@ -19,11 +45,7 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     r = np.abs(np.asarray(r, float))
     z = np.asarray(z, float)
     args = dict(fit_height=fit_height, S=S, pixel_size=pixel_size, r_scale=r_scale, fixed_n=fixed_n)
-    sys_px = 0.0
-    if image_chi2_red is not None and np.isfinite(image_chi2_red):
-        # chi2_red of a model-true image scatters by sqrt(2 / N) about 1: 3 SD of that are noise
-        allow = 3.0 * np.sqrt(2.0 / image_n_pixels) if image_n_pixels else 0.0
-        sys_px = EDGE_SYSTEMATIC_PX * min(1.0, float(np.sqrt(max(float(image_chi2_red) - 1.0 - allow, 0.0))))
+    sys_px = _systematic_px(image_chi2_red, image_n_pixels)
 
     pre = []  # notes known before the fit
     if edge_cov is not None and not np.all(np.isfinite(edge_cov)):
@@ -49,16 +71,7 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     # make the face above it look turned back)
     scale = max(0.05e-9, 0.25 * (pixel_size or 0.0))
     robust = _fit_power_law(r, z, **args, **sub(full), loss=("soft_l1", scale))
-    bump = _one_flank_runs(robust, r, z, side, win, r_scale)
-    if bump.any():
-        notes.append(f"contamination on the {_where(r, z, side, bump)} (stands out of that flank only, "
-                     f"{bump.sum()} points): left out, the fit rests on the unaffected points")
-    back = _turned_back(r, z, side, win & ~bump, tol=max(TURN_BACK_TOL, TURN_BACK_PX * (pixel_size or 0.0)))
-    if back.any():
-        notes.append(f"edge turns back (radius shrinking with height) at {back.sum()} of {win.sum()} points "
-                     f"({_where(r, z, side, back)}): left out")
-        if back.sum() > TURN_BACK_MAX * max(win.sum(), 1):
-            flags.append("edge_turns_back")
+    bump, back = _screened_out(robust, r, z, side, win, r_scale, pixel_size, notes, flags)
     keep = full & ~bump & ~back
     fit = _fit_power_law(r[keep], z[keep], **args, **sub(keep), systematic_px=sys_px)
     if sys_px > 0:

@@ -217,6 +217,34 @@ def _spring_constant(cant, reader, curves, details, x, u):
     return km, k_fun, k_src
 
 
+def _reference_invols(ref, cant, reader, x, u, details):
+    """The InvOLS of the test lever pressed on the reference lever (given or from its curves)
+    into ``x``/``u``; returns where it came from."""
+    if "deflection_sensitivity" in ref:
+        x["invols_ref"], u["invols_ref"] = ref["deflection_sensitivity"], ref.get("deflection_sensitivity_uncertainty", 0.0)
+        r_src = "InvOLS on the reference lever from tip YAML"
+    elif "curves" in ref:
+        x["invols_ref"], u["invols_ref"], r_src = _hard_sample_invols({**cant, "ref_curves": ref["curves"]}, reader, details, "ref_curves", "reference_curves")
+        r_src = "InvOLS on the reference lever: " + r_src
+    else:
+        raise CalibrationError("cantilever.reference_lever needs deflection_sensitivity or curves (InvOLS measured on the reference lever)")
+    return r_src
+
+
+def _reference_details(x, u, length, tc) -> dict:
+    """The reference-lever inputs as the forces file's calibration details list them."""
+    return {
+        "k_ref": (x["k_ref"], "N/m", "reference lever spring constant"),
+        "u_k_ref": (u["k_ref"], "N/m", "its uncertainty"),
+        "invols_ref": (x["invols_ref"], "m/V", "InvOLS of the test lever pressed on the reference lever"),
+        "u_invols_ref": (u["invols_ref"], "m/V", "its uncertainty"),
+        "length": (length if length is not None else np.nan, "m", "reference lever length L"),
+        "offset": (x["dL"], "m", "loading point distance dL from the reference lever end"),
+        "tilt": (x["theta"], "rad", "tilt angle"),
+        "tilt_correction": (tc, "1", "k multiplied by cos^p(tilt): cos p=1, cos2 p=2, none p=0"),
+    }
+
+
 def _reference_setup(cant, reader, x, u, details):
     if "reference_lever" not in cant:
         raise CalibrationError("spring_constant_method 'reference_lever' needs cantilever.reference_lever")
@@ -228,14 +256,7 @@ def _reference_setup(cant, reader, x, u, details):
     if "spring_constant" not in ref:
         raise CalibrationError("cantilever.reference_lever.spring_constant (k_ref) is required")
     x["k_ref"], u["k_ref"] = ref["spring_constant"], ref.get("spring_constant_uncertainty", 0.0)
-    if "deflection_sensitivity" in ref:
-        x["invols_ref"], u["invols_ref"] = ref["deflection_sensitivity"], ref.get("deflection_sensitivity_uncertainty", 0.0)
-        r_src = "InvOLS on the reference lever from tip YAML"
-    elif "curves" in ref:
-        x["invols_ref"], u["invols_ref"], r_src = _hard_sample_invols({**cant, "ref_curves": ref["curves"]}, reader, details, "ref_curves", "reference_curves")
-        r_src = "InvOLS on the reference lever: " + r_src
-    else:
-        raise CalibrationError("cantilever.reference_lever needs deflection_sensitivity or curves (InvOLS measured on the reference lever)")
+    r_src = _reference_invols(ref, cant, reader, x, u, details)
     length = ref.get("length")
     if ref["offset"] and length is None:
         raise CalibrationError("cantilever.reference_lever.offset needs the reference lever length")
@@ -252,16 +273,7 @@ def _reference_setup(cant, reader, x, u, details):
         k_fun(x)
     except ValueError as exc:
         raise CalibrationError(f"reference lever: {exc}") from None
-    details["reference_lever"] = {
-        "k_ref": (x["k_ref"], "N/m", "reference lever spring constant"),
-        "u_k_ref": (u["k_ref"], "N/m", "its uncertainty"),
-        "invols_ref": (x["invols_ref"], "m/V", "InvOLS of the test lever pressed on the reference lever"),
-        "u_invols_ref": (u["invols_ref"], "m/V", "its uncertainty"),
-        "length": (length if length is not None else np.nan, "m", "reference lever length L"),
-        "offset": (x["dL"], "m", "loading point distance dL from the reference lever end"),
-        "tilt": (x["theta"], "rad", "tilt angle"),
-        "tilt_correction": (tc, "1", "k multiplied by cos^p(tilt): cos p=1, cos2 p=2, none p=0"),
-    }
+    details["reference_lever"] = _reference_details(x, u, length, tc)
     src = f"reference lever (Tortonese & Kirk 1997): k = k_ref (L/(L-dL))^3 (InvOLS_ref/InvOLS_hard - 1) cos^p(tilt), tilt_correction={tc}; {r_src}"
     return k_fun, src
 

@@ -349,6 +349,45 @@ def _bends_before_the_jump(dc, x, lo, hi, m=4, t_min=3.5):
     return bool(r.mean() > t_min * se)
 
 
+def _fitted_minimum(z, dc, line, i_j, i_min, jump_fraction, fit_points):
+    """Delta of method "fit" on the corrected deflection ``dc`` (jump index ``i_j``, deepest
+    sample ``i_min``): (delta, its fit uncertainty, the shape, the extrapolation step, the index
+    of the last contact sample)."""
+    step = 0.0
+    shape = "sharp jump"  # unless a smooth minimum is found below
+    # where the curve turns: a jump right after the deepest sample, or a detaching branch first
+    lo = max(0, i_min - int(fit_points))
+    x, _ = _abscissa(z, dc, lo, i_min)
+    contact = fit_line(x[lo : i_min + 1], dc[lo : i_min + 1], clip=np.inf) if i_min - lo >= 3 else None
+    if jump_fraction >= 0.5:
+        step_c = abs(contact.slope) * float(np.median(np.abs(np.diff(x[lo : i_min + 1])))) if contact else 0.0
+        i_end = _transition_start(dc, i_j, i_min, step_c, line.rms)
+    else:
+        i_end = i_j + int(np.argmax(dc[i_j:] >= 0.5 * dc[i_min]))
+    branch = (_detaching_branch(dc, i_min, i_end, contact, x, max(contact.rms, 1e-300))
+              if contact is not None else np.zeros(0, int))
+    # jitter: samples after the largest rise that are back on the contact line (not a filter's transition)
+    i_jit = _last_contact(dc, i_j, int(fit_points), line.rms) if jump_fraction >= 0.5 else i_j
+    i_last = i_jit if i_jit != i_j else i_end
+    if branch.size >= 1 or jump_fraction < 0.5:
+        delta, u_fit, shape = _smooth_minimum(dc, x, *_band_window(dc, i_min, i_end, line.rms), line.rms)
+        i_j = i_min
+    else:
+        lo_w = max(0, i_last + 1 - int(fit_points))
+        xw, _ = _abscissa(z, dc, lo_w, i_last)
+        if i_last == i_end and i_last - lo_w >= 8 and _bends_before_the_jump(dc, xw, lo_w, i_last):
+            # the line bends to a minimum before the jump: the lever passed the largest
+            # attraction before it let go
+            delta, u_fit, shape = _smooth_minimum(dc, xw, lo_w, i_last, line.rms)
+            shape += " before the jump"
+            i_last = lo_w + int(np.argmin(dc[lo_w : i_last + 1]))
+        else:
+            delta, u_fit, step, i_last = _contact_extrapolation(z, dc, i_last, int(fit_points), i_j,
+                                                                robust=i_last != i_end)
+        i_j = i_last
+    return delta, u_fit, shape, step, i_j
+
+
 def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, method="fit",
                    fit_points=20, min_snr=5.0) -> PullOff:
     """Find Delta on a retract segment (``z`` decreasing, m; ``d`` deflection, V or m)."""
@@ -371,7 +410,6 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
         raise ForceCurveError(path, clipped)
     step = 0.0
     jump_fraction = float((dc[i_j + 1 : i_j + 4].max() - dc[i_j]) / delta_min)
-    shape = "sharp jump"
     if method == "min":
         delta, u_fit, shape = delta_min, line.rms, "raw minimum"
     elif method != "fit":
@@ -379,36 +417,7 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
     elif i_min < 5:
         delta, u_fit, shape = delta_min, line.rms, "raw minimum (too few contact points for a line)"
     else:
-        # where the curve turns: a jump right after the deepest sample, or a detaching branch first
-        lo = max(0, i_min - int(fit_points))
-        x, _ = _abscissa(z, dc, lo, i_min)
-        contact = fit_line(x[lo : i_min + 1], dc[lo : i_min + 1], clip=np.inf) if i_min - lo >= 3 else None
-        if jump_fraction >= 0.5:
-            step_c = abs(contact.slope) * float(np.median(np.abs(np.diff(x[lo : i_min + 1])))) if contact else 0.0
-            i_end = _transition_start(dc, i_j, i_min, step_c, line.rms)
-        else:
-            i_end = i_j + int(np.argmax(dc[i_j:] >= 0.5 * dc[i_min]))
-        branch = (_detaching_branch(dc, i_min, i_end, contact, x, max(contact.rms, 1e-300))
-                  if contact is not None else np.zeros(0, int))
-        # jitter: samples after the largest rise that are back on the contact line (not a filter's transition)
-        i_jit = _last_contact(dc, i_j, int(fit_points), line.rms) if jump_fraction >= 0.5 else i_j
-        i_last = i_jit if i_jit != i_j else i_end
-        if branch.size >= 1 or jump_fraction < 0.5:
-            delta, u_fit, shape = _smooth_minimum(dc, x, *_band_window(dc, i_min, i_end, line.rms), line.rms)
-            i_j = i_min
-        else:
-            lo_w = max(0, i_last + 1 - int(fit_points))
-            xw, _ = _abscissa(z, dc, lo_w, i_last)
-            if i_last == i_end and i_last - lo_w >= 8 and _bends_before_the_jump(dc, xw, lo_w, i_last):
-                # the line bends to a minimum before the jump: the lever passed the largest
-                # attraction before it let go
-                delta, u_fit, shape = _smooth_minimum(dc, xw, lo_w, i_last, line.rms)
-                shape += " before the jump"
-                i_last = lo_w + int(np.argmin(dc[lo_w : i_last + 1]))
-            else:
-                delta, u_fit, step, i_last = _contact_extrapolation(z, dc, i_last, int(fit_points), i_j,
-                                                                    robust=i_last != i_end)
-            i_j = i_last
+        delta, u_fit, shape, step, i_j = _fitted_minimum(z, dc, line, i_j, i_min, jump_fraction, int(fit_points))
     if not delta > min_snr * line.rms:
         raise ForceCurveError(path, f"no pull-off event: adhesive deflection {delta:.3g} is below force_curves.min_pulloff_snr "
                                     f"({min_snr:g}) x the baseline noise rms {line.rms:.3g} (same units as the deflection)")

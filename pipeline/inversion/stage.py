@@ -19,6 +19,18 @@ from pipeline.inversion.solve import law_curves
 log = logging.getLogger(__name__)
 
 
+def _interval_result(shape, dr, notes, solved_laws) -> dict:
+    """One interval's result as ``write_inversion_h5`` takes it."""
+    return {"n_used": shape.n, "ln_Q_used": shape.ln_Q, "n_flag": shape.n_flag, "draws": dr, "notes": notes,
+            "shape_model": shape.model, "laws": solved_laws}
+
+
+def _settings(tip, solver_mode, laws, n_samples, seed, E_star, u_E_star, exact) -> dict:
+    """The run's settings as ``write_inversion_h5`` stores them."""
+    return {"tip": tip, "solver_mode": solver_mode, "laws": laws, "mc_samples": n_samples, "seed": seed,
+            "E_star": E_star, "u_E_star": u_E_star, "exact": exact}
+
+
 def run_inversion(
     fit_h5s: dict,
     forces_h5s: dict,
@@ -66,14 +78,12 @@ def run_inversion(
             dr["n"][:] = np.nan
         notes = _interval_notes(nm, shape, forces[nm], dr, compliance, fp_notes)
         _log_interval(tip, nm, shape, forces[nm], compliance, notes)
-        results[nm] = {"n_used": shape.n, "ln_Q_used": shape.ln_Q, "n_flag": shape.n_flag, "draws": dr, "notes": notes,
-                       "shape_model": shape.model,
-                       "laws": _solve_laws(laws, shape, forces[nm], dr, sysd, E_star, h, h[mc_idx], solver_mode, exact)}
+        solved = _solve_laws(laws, shape, forces[nm], dr, sysd, E_star, h, h[mc_idx], solver_mode, exact)
+        results[nm] = _interval_result(shape, dr, notes, solved)
         log.info("%s: interval %d/%d (%s) solved for %d laws x %d Monte-Carlo samples, %.1f s so far",
                  tip, i + 1, len(names), nm, len(laws), n_samples, time.perf_counter() - t0)
 
-    settings = {"tip": tip, "solver_mode": solver_mode, "laws": laws, "mc_samples": n_samples, "seed": seed,
-                "E_star": E_star, "u_E_star": u_E_star, "exact": exact}
+    settings = _settings(tip, solver_mode, laws, n_samples, seed, E_star, u_E_star, exact)
     write_inversion_h5(out_h5, settings=settings, h=h, mc_idx=mc_idx, cal=cal, cal_notes=cal_notes, systematic=sysd,
                        intervals=intervals, fits=fits, forces=forces, results=results)
     return {"seconds": time.perf_counter() - t0, "intervals": names, "laws": laws}

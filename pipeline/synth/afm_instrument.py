@@ -260,6 +260,20 @@ def _thermal(n, dt, lever: Lever, rng):
     return x * (np.sqrt(K_B * lever.temperature / lever.k) / sd if sd > 0 else 0.0)
 
 
+def _lowpass(volts, inst: Instrument, fi):
+    """The instrument's anti-alias filter (sampling rate ``fi``), if any."""
+    if inst.lowpass > 0:
+        sos = signal.butter(2, inst.lowpass, fs=fi, output="sos")
+        volts = signal.sosfilt(sos, volts - volts[0]) + volts[0]
+    return volts
+
+
+def _digitised(volts, inst: Instrument):
+    """``volts`` rounded to the ADC's levels and clipped to its range."""
+    lsb = 2 * inst.adc_range / 2**inst.adc_bits
+    return np.clip(np.round(volts / lsb) * lsb, -inst.adc_range, inst.adc_range - lsb)
+
+
 def simulate_curve(it: Interaction, lever: Lever, inst: Instrument, *, seed=0, height_start=2e-6) -> InstrumentCurve:
     """One approach-retract ramp as the instrument records it (module doc)."""
     rng = np.random.default_rng(seed)
@@ -302,14 +316,11 @@ def simulate_curve(it: Interaction, lever: Lever, inst: Instrument, *, seed=0, h
     sig = d_mech + th + drift
     volts = (sig + lever.alpha * sig**2) / lever.invols
     volts = volts + inst.tilt * z + (inst.interference / lever.invols) * np.sin(2 * np.pi * z / inst.interference_period + rng.uniform(0, 2 * np.pi))
-    if inst.lowpass > 0:
-        sos = signal.butter(2, inst.lowpass, fs=fi, output="sos")
-        volts = signal.sosfilt(sos, volts - volts[0]) + volts[0]
+    volts = _lowpass(volts, inst, fi)
     idx = np.arange(0, volts.size, over)
     volts, zs, ts = volts[idx], z[idx], t[idx]
     volts = volts + inst.offset_V + rng.standard_normal(volts.size) * inst.detector_noise / lever.invols
-    lsb = 2 * inst.adc_range / 2**inst.adc_bits
-    volts = np.clip(np.round(volts / lsb) * lsb, -inst.adc_range, inst.adc_range - lsb)
+    volts = _digitised(volts, inst)
     height = height_start - (zs * inst.z_scale + rng.standard_normal(zs.size) * inst.z_noise)
     n_a = int(np.ceil((n_app + n_dw) / over))
     seg = np.array(["extend"] * n_a + ["retract"] * (volts.size - n_a), dtype=object)

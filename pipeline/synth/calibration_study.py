@@ -141,6 +141,20 @@ def _write_curves(case: Case, i, n, Fi, folder, rng, generator, lever, inst):
     return paths, np.array(truth), dict(READER)
 
 
+def _reference_paraboloid(case: Case):
+    """The reference's paraboloid fit (n held at 2), as stage 2 writes it: (ln r, its variance)."""
+    lnr2 = np.log(case.R) + 2.0 * case.sigma_ln_rh * np.random.default_rng([case.seed, 0xA2B]).standard_normal()
+    return (lnr2, (2.0 * case.sigma_ln_rh) ** 2)
+
+
+def _weighted_truth(forces_h5, F_curves) -> float:
+    """The true pull-off force of an interval weighted as stage 3 weighted its curves."""
+    import h5py
+
+    with h5py.File(forces_h5) as f:
+        return float(np.sum(f["curves/weight"][()] * F_curves))
+
+
 def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_grid=None, oracle_invols=False,
              generator="instrument") -> dict:
     """Write the case's curves and fits, run stages 3-5 (Dugdale law), compare with the truth.
@@ -155,8 +169,6 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
     and the pull-off scatter's).  Returns a dict of the errors and the coverage of the 95 %
     intervals; ``fp_err_max`` is the worst interval F_p (as stage 4 uses it, after the contact
     compliance correction) against the weighted truth of the curves used."""
-    import h5py
-
     from pipeline.forces.stage import run_forces
     from pipeline.inversion.io import load_inversion
     from pipeline.inversion.stage import run_inversion
@@ -177,14 +189,10 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
         icfg = {"deflection_sensitivity": float(case.invols[i]), "deflection_sensitivity_uncertainty": 0.0} if oracle_invols else {}
         run_forces(paths, forces[nm], root / "forces" / f"{nm}.png", cantilever=cant, reader=reader, tip=f"case{case.seed}",
                    interval=nm, interval_cfg=icfg)
-        with h5py.File(forces[nm]) as f:
-            truth_F[nm] = float(np.sum(f["curves/weight"][()] * F_curves))
+        truth_F[nm] = _weighted_truth(forces[nm], F_curves)
         n_obs, lnr_obs, cov = _observed_shape(case, n, rng)
         fits[nm] = str(root / "fits" / f"{nm}.h5")
-        para = None
-        if i == 0:  # the reference's paraboloid fit (n held at 2), as stage 2 writes it
-            lnr2 = np.log(case.R) + 2.0 * case.sigma_ln_rh * np.random.default_rng([case.seed, 0xA2B]).standard_normal()
-            para = (lnr2, (2.0 * case.sigma_ln_rh) ** 2)
+        para = _reference_paraboloid(case) if i == 0 else None
         write_synthetic_fit(fits[nm], n_obs, lnr_obs, case.S, cov,
                             flags=("",), rms_residual=0.05e-9, paraboloid=para)
         ivs.append({"name": nm, "scans": 10 * i, "reference": i == 0})

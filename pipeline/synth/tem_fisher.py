@@ -265,9 +265,8 @@ def fisher_information(n, Q, pixel_size, shape, *, blur_sigma_px=1.0, edge_snr=5
     apex = default_apex(shape, orientation, seed) if apex_px is None else tuple(map(float, apex_px))
     corner_r, corner_c = np.array([0, 0, H - 1, H - 1]), np.array([0, W - 1, 0, W - 1])  # pixel centres
     z_top = float(_tip_frame_z(corner_r, corner_c, apex, px, rotation_deg, orientation).max())
-    prof = _Profile(n, Q, px, shape, coating_thickness, z_window,
-                    window_knots(z_window, z_top, fine_spacing, fine_extent, coarse_spacing), cone_above)
-    coated = coating_thickness > 0
+    knots = window_knots(z_window, z_top, fine_spacing, fine_extent, coarse_spacing)
+    prof = _Profile(n, Q, px, shape, coating_thickness, z_window, knots, cone_above)
     base = dict(n=n, Q=Q, pixel_size=px, shape=shape, apex_px=apex, rotation_deg=rotation_deg,
                 blur_sigma_px=blur_sigma_px, coating_thickness=coating_thickness, orientation=orientation,
                 lambda_core=lambda_core, lambda_coat=lambda_coat, background=1.0, gradient=gradient,
@@ -284,6 +283,25 @@ def fisher_information(n, Q, pixel_size, shape, *, blur_sigma_px=1.0, edge_snr=5
         renders[0] += 1
         return expected_tem_image(**kw)
 
+    derivs, dropped, steps = _all_derivatives(prof, render, base, apex, step_px, z_window)
+    names = list(derivs)
+    F = _fisher_matrix([derivs[k] for k in names], I0)
+    info = dict(steps=steps, z_top=z_top, apex_px=apex,
+                n_spline=prof.n_spline, band_pixels=int(band.sum()), dropped=dropped)
+    if keep_images:
+        info.update(expected=I0, band=band, derivatives=derivs)
+    return FisherResult(names, F, n_bg, float(edge_snr), float(n), float(Q), prof.r_ref, prof.z_ref,
+                        time.perf_counter() - t0, renders[0], info)
+
+
+def _all_derivatives(prof, render, base, apex, step_px, z_window):
+    """The derivative images of ``fisher_information`` (``render(**over)``: the expected image
+    with ``base``'s arguments changed by ``over``), those the image does not see dropped:
+    (derivatives by name, the names dropped, the steps)."""
+    px, supersample, blur_sigma_px = base["pixel_size"], base["supersample"], base["blur_sigma_px"]
+    gradient, lambda_core, lambda_coat = base["gradient"], base["lambda_core"], base["lambda_coat"]
+    coating_thickness = base["coating_thickness"]
+    coated = coating_thickness > 0
     # geometric step, rounded up to a multiple of 1/(2 ss) px: a central difference that moves
     # an edge aligned with the pixel grid (the flat face of a blunt apex, a shank edge) then
     # spans a whole number of sub-sample rows at any sub-pixel position
@@ -308,15 +326,7 @@ def fisher_information(n, Q, pixel_size, shape, *, blur_sigma_px=1.0, edge_snr=5
     # no blur -> no blur parameter; a shank coefficient the image does not see is dropped
     dropped = [k for k, v in derivs.items() if v is None or not np.any(v)]
     derivs = {k: v for k, v in derivs.items() if k not in dropped}
-
-    names = list(derivs)
-    F = _fisher_matrix([derivs[k] for k in names], I0)
-    info = dict(steps=dict(n=dn, log_r_ref=dl, spline=s, apex_px=step_px, blur=ds), z_top=z_top, apex_px=apex,
-                n_spline=prof.n_spline, band_pixels=int(band.sum()), dropped=dropped)
-    if keep_images:
-        info.update(expected=I0, band=band, derivatives=derivs)
-    return FisherResult(names, F, n_bg, float(edge_snr), float(n), float(Q), prof.r_ref, prof.z_ref,
-                        time.perf_counter() - t0, renders[0], info)
+    return derivs, dropped, dict(n=dn, log_r_ref=dl, spline=s, apex_px=step_px, blur=ds)
 
 
 def _rotation_derivative(render, base, apex, px, step_px, L0):

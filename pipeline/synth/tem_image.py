@@ -172,6 +172,26 @@ def background_dose(edge_snr, contrast):
     return (edge_snr / contrast) ** 2
 
 
+def _apex_position(shape, apex_frac, orientation, rng):
+    """The apex (row, col): at ``apex_frac`` of the image with a random sub-pixel offset so
+    tests do not sit on pixel centres (row mirrored for ``orientation`` "up")."""
+    H, W = shape
+    r_a = apex_frac[0] * H + rng.uniform(-0.5, 0.5)
+    c_a = apex_frac[1] * W + rng.uniform(-0.5, 0.5)
+    if orientation == "up":
+        r_a = H - 1 - r_a
+    elif orientation != "down":
+        raise ValueError(f"orientation must be 'down' or 'up', got {orientation!r}")
+    return r_a, c_a
+
+
+def _as_dtype(noisy, dtype, maxval):
+    """The image in ``dtype`` (integers: rounded and clipped to 0..maxval)."""
+    if np.issubdtype(dtype, np.integer):
+        return np.clip(np.rint(noisy), 0, maxval).astype(dtype)
+    return noisy.astype(dtype)
+
+
 def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge_snr=20.0,
                      rotation_deg=3.0, coating_thickness=0.0, orientation="down", seed=0, *,
                      apex_frac=(0.68, 0.5), lambda_core=40e-9, lambda_coat=120e-9,
@@ -190,15 +210,8 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
     The noise-free image is ``expected_tem_image`` (times ``truth["background"]``).
     """
     rng = np.random.default_rng(seed)
-    H, W = shape
     px = float(pixel_size)
-    # apex position with a random sub-pixel offset so tests do not sit on pixel centres
-    r_a = apex_frac[0] * H + rng.uniform(-0.5, 0.5)
-    c_a = apex_frac[1] * W + rng.uniform(-0.5, 0.5)
-    if orientation == "up":
-        r_a = H - 1 - r_a
-    elif orientation != "down":
-        raise ValueError(f"orientation must be 'down' or 'up', got {orientation!r}")
+    r_a, c_a = _apex_position(shape, apex_frac, orientation, rng)
 
     tables = radius_tables(n, Q, px, shape, coating_thickness, cone_above=cone_above)
     img = expected_tem_image(n, Q, px, shape, (r_a, c_a), rotation_deg=rotation_deg, blur_sigma_px=blur_sigma_px,
@@ -214,10 +227,7 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
     noisy, sigma_noise = _with_noise(img, bg, edge_snr, noise, contrast, rng)
     if scale_bar:
         _draw_scale_bar(noisy, px, orientation)
-    if np.issubdtype(dtype, np.integer):
-        out = np.clip(np.rint(noisy), 0, maxval).astype(dtype)
-    else:
-        out = noisy.astype(dtype)
+    out = _as_dtype(noisy, dtype, maxval)
     R = (Q / S ** (n - 2)) ** (1.0 / (n - 1))
     truth = dict(n=float(n), Q=float(Q), R=float(R), S=float(S), pixel_size=px,
                  rotation_deg=float(rotation_deg), apex_px=(float(r_a), float(c_a)),

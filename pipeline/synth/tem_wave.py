@@ -466,28 +466,14 @@ def make_truth(p, body, grid, contrast, z_ref, det, dose, sigma_vac, img):
     """The truth record of a rendered image (see ``simulate``)."""
     H, W = p.shape
     m, dx, pad = grid
-    # silhouette up to where the tip leaves the padded field
-    z_top = min(_z_extent(p, 0, m), 400e-9)
-    xs, zs = body.silhouette(z_top, spacing=min(0.02e-9, 0.1 * p.pixel_size))
-    rows, cols = _image_coords(xs, zs, p)
-    zf = np.unique(np.concatenate([np.linspace(0, 30e-9, 3001), np.linspace(30e-9, z_top, 500)]))
-    rl, rr = body.flank_radii(zf)
+    silhouette = _silhouette_record(p, body, m)
     th = math.radians(p.rotation_deg)
     sgn = 1.0 if p.orientation == "down" else -1.0
     axis = np.array([-sgn * math.cos(th), -math.sin(th)])  # (drow, dcol) from the apex up the tip
-    parts = []
-    for s, pp in zip(p.particles, _particles(body, p)):
-        r_, c_ = _image_coords(pp.centre[0], pp.centre[2], p)
-        parts.append(dict(kind=s.kind, flank="right" if pp.flank > 0 else "left", height=float(s.height),
-                          azimuth_deg=float(s.azimuth_deg), semi_axes=[float(v) for v in s.semi_axes],
-                          sink=float(s.sink), centre_tip=[float(v) for v in pp.centre],
-                          centre_px=[float(r_), float(c_)], protrusion=_protrusion(body, pp), material="aC"))
+    parts = _particle_records(p, body)
     apex_flanks = sorted({q["flank"] for q in parts if q["kind"] == "apex"})
-    lam_abs = p.absorption_lengths()
-    pot = p.potentials()
     sigma = interaction_constant(p.kv)
-    materials = {mat: dict(mean_inner_potential=pot[mat], absorption_length=lam_abs[mat],
-                           phase_per_length=sigma * pot[mat]) for mat in lam_abs}
+    materials = _materials_record(p, sigma)
     full = {8: 255, 16: 65535}.get(p.bits)
     sat = float(np.mean(img >= full)) if full else 0.0
     o = p.optics()
@@ -501,18 +487,59 @@ def make_truth(p, body, grid, contrast, z_ref, det, dose, sigma_vac, img):
         layer=p.layer, layer_material=LAYER_MATERIAL[p.layer], layer_thickness=p.layer_thickness if has_layer else 0.0,
         layer_contrast=p.layer_contrast if has_layer else 0.0, materials=materials,
         particles=parts, particle_flank=flank,
-        optics=dict(kv=o.kv, wavelength=o.wavelength, interaction_constant=sigma, defocus=o.defocus, cs=o.cs,
-                    aperture=o.aperture, illumination_angle=o.illumination_angle, focal_spread=o.focal_spread,
-                    cc=p.cc, energy_spread_ev=p.energy_spread_ev,
-                    fringe_width=math.sqrt(o.wavelength * abs(o.defocus))),
-        detector=dict(bits=p.bits, gain=det.gain, offset=det.offset, read_noise=det.read_noise, psf_sigma=det.psf_sigma,
-                      tail_weight=det.tail_weight, tail_length=det.tail_length),
+        optics=_optics_record(p, o, sigma),
+        detector=_detector_record(p, det),
         dose=dose, snr=p.snr, reference_contrast=contrast, reference_height=z_ref, noise_sigma=sigma_vac,
         vacuum_level=dose * det.gain + det.offset, saturated_fraction=sat,
         sim=dict(cells_per_pixel=m, grid_step=dx, padding=pad, band_limit=band_limit(dx, o), supersample=_SUPERSAMPLE),
-        silhouette_px=np.column_stack([rows, cols]), silhouette_tip=np.column_stack([xs, zs]),
-        flank_z=zf, flank_r_left=rl, flank_r_right=rr,
+        **silhouette,
     )
+
+
+def _silhouette_record(p, body, m):
+    """The truth's silhouette (image and tip coordinates) and flank radii, up to where the tip
+    leaves the padded field (``m`` cells per pixel)."""
+    z_top = min(_z_extent(p, 0, m), 400e-9)
+    xs, zs = body.silhouette(z_top, spacing=min(0.02e-9, 0.1 * p.pixel_size))
+    rows, cols = _image_coords(xs, zs, p)
+    zf = np.unique(np.concatenate([np.linspace(0, 30e-9, 3001), np.linspace(30e-9, z_top, 500)]))
+    rl, rr = body.flank_radii(zf)
+    return dict(silhouette_px=np.column_stack([rows, cols]), silhouette_tip=np.column_stack([xs, zs]),
+                flank_z=zf, flank_r_left=rl, flank_r_right=rr)
+
+
+def _particle_records(p, body):
+    """One truth record per particle of ``p`` (shape, position on the tip and in the image)."""
+    parts = []
+    for s, pp in zip(p.particles, _particles(body, p)):
+        r_, c_ = _image_coords(pp.centre[0], pp.centre[2], p)
+        parts.append(dict(kind=s.kind, flank="right" if pp.flank > 0 else "left", height=float(s.height),
+                          azimuth_deg=float(s.azimuth_deg), semi_axes=[float(v) for v in s.semi_axes],
+                          sink=float(s.sink), centre_tip=[float(v) for v in pp.centre],
+                          centre_px=[float(r_), float(c_)], protrusion=_protrusion(body, pp), material="aC"))
+    return parts
+
+
+def _materials_record(p, sigma):
+    """Mean inner potential, absorption length and phase per length of each material."""
+    lam_abs = p.absorption_lengths()
+    pot = p.potentials()
+    return {mat: dict(mean_inner_potential=pot[mat], absorption_length=lam_abs[mat],
+                      phase_per_length=sigma * pot[mat]) for mat in lam_abs}
+
+
+def _optics_record(p, o, sigma):
+    """The truth's optics (``o = p.optics()``, ``sigma`` the interaction constant)."""
+    return dict(kv=o.kv, wavelength=o.wavelength, interaction_constant=sigma, defocus=o.defocus, cs=o.cs,
+                aperture=o.aperture, illumination_angle=o.illumination_angle, focal_spread=o.focal_spread,
+                cc=p.cc, energy_spread_ev=p.energy_spread_ev,
+                fringe_width=math.sqrt(o.wavelength * abs(o.defocus)))
+
+
+def _detector_record(p, det):
+    """The truth's detector."""
+    return dict(bits=p.bits, gain=det.gain, offset=det.offset, read_noise=det.read_noise, psf_sigma=det.psf_sigma,
+                tail_weight=det.tail_weight, tail_length=det.tail_length)
 
 
 def _protrusion(body, part):

@@ -116,14 +116,24 @@ def generate_tip(t: TipTruth, out_dir: Path) -> dict:
     """Write TEM images, force curves and truth.yaml of one tip into ``out_dir``.
 
     Returns the truth as a plain dict (also written to ``truth.yaml``)."""
-    from pipeline.synth.force_curves import make_force_curve, write_curve_csv
-    from pipeline.synth.tem_image import render_tem_image, write_tem_tiff
-
     out_dir = Path(out_dir)
     rng = np.random.default_rng(t.seed)
     F_true = true_pulloff_forces(t)
     invols = interval_invols(t)
-    truth = {
+    truth = _tip_truth_record(t)
+    for i, (name, n, scans, F) in enumerate(zip(t.interval_names(), t.n, t.scans, F_true)):
+        truth["intervals"].append(_write_interval(t, i, name, n, scans, F, float(invols[i]), out_dir, rng))
+    if t.calibration == "curves":
+        _write_calibration_curves(t, out_dir / "calibration", rng)
+        truth["reference_lever_k_N_per_m"] = t.k_ref
+    with open(out_dir / "truth.yaml", "w") as fh:
+        yaml.safe_dump(truth, fh, sort_keys=False)
+    return truth
+
+
+def _tip_truth_record(t: TipTruth) -> dict:
+    """The tip's part of truth.yaml (its intervals are appended by ``generate_tip``)."""
+    return {
         "description": t.description,
         "generator": "pipeline.synth.wear_test (python -m pipeline make-samples)",
         "seed": t.seed,
@@ -139,37 +149,38 @@ def generate_tip(t: TipTruth, out_dir: Path) -> dict:
         "coating_thickness_m": t.coating,
         "intervals": [],
     }
-    for i, (name, n, scans, F) in enumerate(zip(t.interval_names(), t.n, t.scans, F_true)):
-        Q = t.Q(n)
-        img, img_truth = render_tem_image(
-            n=n, Q=Q, pixel_size=t.pixel_size, shape=(512, 512), blur_sigma_px=t.blur_sigma_px,
-            edge_snr=t.edge_snr, rotation_deg=t.rotation_deg + rng.normal(0, 0.5),
-            coating_thickness=t.coating, orientation="down", seed=int(rng.integers(2**31)), S=t.S,
-            contamination=(i == len(t.n) - 1),
+
+
+def _write_interval(t: TipTruth, i, name, n, scans, F, invols_i, out_dir: Path, rng) -> dict:
+    """Write interval ``i``'s TEM image and force curves (true pull-off force ``F``, InvOLS
+    ``invols_i``); returns its truth record."""
+    from pipeline.synth.force_curves import make_force_curve, write_curve_csv
+    from pipeline.synth.tem_image import render_tem_image, write_tem_tiff
+
+    Q = t.Q(n)
+    img, img_truth = render_tem_image(
+        n=n, Q=Q, pixel_size=t.pixel_size, shape=(512, 512), blur_sigma_px=t.blur_sigma_px,
+        edge_snr=t.edge_snr, rotation_deg=t.rotation_deg + rng.normal(0, 0.5),
+        coating_thickness=t.coating, orientation="down", seed=int(rng.integers(2**31)), S=t.S,
+        contamination=(i == len(t.n) - 1),
+    )
+    (out_dir / "tem").mkdir(parents=True, exist_ok=True)
+    write_tem_tiff(out_dir / "tem" / f"{name}.tif", img, t.pixel_size)
+    curve_dir = out_dir / "curves" / name
+    F_curves = F * (1.0 + t.fp_scatter * rng.standard_normal(t.curves_per_interval))
+    for j, Fj in enumerate(F_curves):
+        curve = make_force_curve(
+            F_p=float(Fj), k=t.k, invols=invols_i, seed=int(rng.integers(2**31)),
+            offset_V=float(rng.normal(0.0, 0.05)), tilt=float(rng.normal(0.0, 2e5)), noise=0.1e-9,
         )
-        (out_dir / "tem").mkdir(parents=True, exist_ok=True)
-        write_tem_tiff(out_dir / "tem" / f"{name}.tif", img, t.pixel_size)
-        curve_dir = out_dir / "curves" / name
-        F_curves = F * (1.0 + t.fp_scatter * rng.standard_normal(t.curves_per_interval))
-        for j, Fj in enumerate(F_curves):
-            curve = make_force_curve(
-                F_p=float(Fj), k=t.k, invols=float(invols[i]), seed=int(rng.integers(2**31)),
-                offset_V=float(rng.normal(0.0, 0.05)), tilt=float(rng.normal(0.0, 2e5)), noise=0.1e-9,
-            )
-            write_curve_csv(curve_dir / f"curve_{j + 1:02d}.csv", curve)
-        truth["intervals"].append({
-            "name": name, "scans": scans, "n": n, "Q_SI": Q,
-            "F_p_true_N": float(F), "F_p_curves_N": [float(x) for x in F_curves],
-            "deflection_sensitivity_m_per_V": float(invols[i]),
-            "image": {k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in img_truth.items()
-                      if isinstance(v, (int, float, str, np.floating))},
-        })
-    if t.calibration == "curves":
-        _write_calibration_curves(t, out_dir / "calibration", rng)
-        truth["reference_lever_k_N_per_m"] = t.k_ref
-    with open(out_dir / "truth.yaml", "w") as fh:
-        yaml.safe_dump(truth, fh, sort_keys=False)
-    return truth
+        write_curve_csv(curve_dir / f"curve_{j + 1:02d}.csv", curve)
+    return {
+        "name": name, "scans": scans, "n": n, "Q_SI": Q,
+        "F_p_true_N": float(F), "F_p_curves_N": [float(x) for x in F_curves],
+        "deflection_sensitivity_m_per_V": invols_i,
+        "image": {k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in img_truth.items()
+                  if isinstance(v, (int, float, str, np.floating))},
+    }
 
 
 def _write_calibration_curves(t: TipTruth, out_dir: Path, rng, count: int = 4) -> None:

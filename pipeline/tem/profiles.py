@@ -161,6 +161,33 @@ def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine):
     return pts, frame, edge_model, extra, uncertainty
 
 
+def _edge_uncertainty(uncertainty, keep, x, px, frame):
+    """The kept points' edge-offset basis, the offsets' covariance (m^2) and the outward
+    normals in (r, z) (all None without the silhouette fit's ``uncertainty``)."""
+    basis = cov = normal_rz = None
+    if uncertainty is not None:
+        basis, cov_c, nrm = uncertainty
+        basis = basis[keep]
+        cov = cov_c * px**2
+        nx, nz = nrm[keep] @ frame.v, nrm[keep] @ frame.u
+        normal_rz = np.column_stack([np.where(x < 0, -nx, nx), nz])
+    return basis, cov, normal_rz
+
+
+def _in_image(pts, frame, origin, flipped, n_rows):
+    """Edge points, apex, axis and angle back in the original image's coordinates (``n_rows``
+    rows; ``flipped``: the window was taken from the image upside down)."""
+    pts_img = pts + origin
+    apex_img = frame.apex + origin
+    axis = frame.u.copy()
+    angle = -frame.angle  # counter-clockwise as displayed (apex pointing down)
+    if flipped:
+        pts_img[:, 0] = n_rows - 1 - pts_img[:, 0]
+        apex_img[0] = n_rows - 1 - apex_img[0]
+        axis[0] = -axis[0]
+    return pts_img, apex_img, axis, angle
+
+
 def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto",
                     refine="global") -> TipProfile:
     """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
@@ -188,23 +215,8 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
     pts, x, z = pts[keep], x[keep], z[keep]
     flank = np.where(x < 0, -1, 1)
     a_mean, a_rms = _asymmetry(x, z, hpx)
-    basis = cov = normal_rz = None
-    if uncertainty is not None:
-        basis, cov_c, nrm = uncertainty
-        basis = basis[keep]
-        cov = cov_c * px**2
-        nx, nz = nrm[keep] @ frame.v, nrm[keep] @ frame.u
-        normal_rz = np.column_stack([np.where(x < 0, -nx, nx), nz])
-
-    # back to original image coordinates
-    pts_img = pts + origin
-    apex_img = frame.apex + origin
-    axis = frame.u.copy()
-    angle = -frame.angle  # counter-clockwise as displayed (apex pointing down)
-    if flipped:
-        pts_img[:, 0] = image.data.shape[0] - 1 - pts_img[:, 0]
-        apex_img[0] = image.data.shape[0] - 1 - apex_img[0]
-        axis[0] = -axis[0]
+    basis, cov, normal_rz = _edge_uncertainty(uncertainty, keep, x, px, frame)
+    pts_img, apex_img, axis, angle = _in_image(pts, frame, origin, flipped, image.data.shape[0])
     return TipProfile(
         pixel_size=px, pixel_size_source=image.source, orientation="up" if flipped else "down",
         angle=float(angle), apex_px=apex_img, axis_px=axis, edge_px=pts_img,

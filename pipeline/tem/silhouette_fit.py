@@ -213,6 +213,20 @@ def _single_layer_fit(prob, k0, max_coat, max_iter):
 def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None):
     c, sigma, k_o, k_c, coat = fitter.unpack(st.v)
     K = prob.K
+    chi2, stderr, cov_c, flags = _covariances(prob, fitter, st, JTJ, names, coat_test, pixel_size)
+    pts, nrm, basis = _outer_silhouette(prob, c, hpx)
+    hit = np.nonzero(np.abs(c) >= 5.99)[0]
+    if hit.size:
+        flags.append(f"edge offset hit its bound (+-6 px) at {hit.size} of {K} knots")
+    rms = float(np.sqrt(np.mean((st.res / prob.w) ** 2)))
+    return GlobalFit(pts, nrm, basis, cov_c, prob.frame, float(sigma), float(k_o), float(k_c), float(coat), rms,
+                     chi2, int(prob.idx.size), int(n_it), stderr, flags, coat_test)
+
+
+def _covariances(prob, fitter, st, JTJ, names, coat_test, pixel_size):
+    """chi^2 per degree of freedom, the standard errors of the non-edge parameters, the edge
+    offsets' covariance (widened where the coating is ambiguous) and the flags."""
+    K = prob.K
     dof = max(1, prob.idx.size - len(names))
     chi2 = float(st.res @ st.res) / dof
     flags, stderr = [], {}
@@ -240,7 +254,12 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None)
     if fitter.coated:
         if stderr.get("log_coat", 0) > 0.3 or stderr.get("log_k_c", 0) > 0.3:
             flags.append(f"coating not identifiable (rel. s.e. thickness {stderr.get('log_coat', np.nan):.2f})")
-    # output: outer silhouette at 1 px spacing in arc length, z <= 1.3 x profile height
+    return chi2, stderr, cov_c, flags
+
+
+def _outer_silhouette(prob, c, hpx):
+    """Outer silhouette at 1 px spacing in arc length, z <= 1.3 x profile height: points and
+    normals in the image, the edge offsets' basis there."""
     x, z = prob.curve(c)
     S = prob.S
     sel = z <= 1.3 * hpx
@@ -254,9 +273,4 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None)
     nxo, nzo = np.interp(Sg, S, prob.nx), np.interp(Sg, S, prob.nz)
     pts = prob.frame.to_image(xo, zo)
     nrm = np.column_stack([nxo * prob.frame.v[0] + nzo * prob.frame.u[0], nxo * prob.frame.v[1] + nzo * prob.frame.u[1]])
-    hit = np.nonzero(np.abs(c) >= 5.99)[0]
-    if hit.size:
-        flags.append(f"edge offset hit its bound (+-6 px) at {hit.size} of {K} knots")
-    rms = float(np.sqrt(np.mean((st.res / prob.w) ** 2)))
-    return GlobalFit(pts, nrm, basis, cov_c, prob.frame, float(sigma), float(k_o), float(k_c), float(coat), rms,
-                     chi2, int(prob.idx.size), int(n_it), stderr, flags, coat_test)
+    return pts, nrm, basis
