@@ -11,7 +11,10 @@ Prints per kind and per model of inconsistent intervals (random effects, the def
 scaling): median and worst |h error|, |W_A error|, worst interval F_p error (as stage 4 uses it),
 coverage of the 95 % intervals of h and W_A, how often the intervals were widened, and the run
 time.  The force curves come from the independent instrument simulator
-(``pipeline.synth.afm_instrument``; ``--generator lorentzian`` for the stage's own).  Usage: python benchmarks/bench_calibration_coverage.py [seeds per kind, default 40] [--kinds rigid,hidden_bias] [--generator lorentzian]
+(``pipeline.synth.afm_instrument``; ``--generator lorentzian`` for the stage's own).  Usage:
+
+    python benchmarks/bench_calibration_coverage.py [seeds per kind, default 40] [--kinds rigid,hidden_bias]
+        [--generator lorentzian]
 """
 from __future__ import annotations
 
@@ -48,9 +51,9 @@ def main(n_seeds=40, generator="instrument", kinds=KINDS):
             dw = np.abs([x[pre + "W_err"] for x in r])
             widened = [(x["tau"] > 0) if not pre else (x["birge"] > 1) for x in r]
             name = f"{kind} ({'RE' if not pre else 'Birge'})"
-            print(f"{name:22s} {len(r):5d} {100 * np.median(dh):7.2f}% {100 * dh.max():7.2f}% {100 * np.median(dw):7.2f}% "
+            print(f"{name:22s} {len(r):5d} {100 * np.median(dh):7.2f}% " f"{100 * dh.max():7.2f}% {100 * np.median(dw):7.2f}% "
                   f"{100 * dw.max():7.2f}% {100 * max(x['fp_err_max'] for x in r):7.2f}% "
-                  f"{100 * np.mean([x[pre + 'h_covered'] for x in r]):5.0f}% {100 * np.mean([x[pre + 'W_covered'] for x in r]):5.0f}% "
+                  f"{100 * np.mean([x[pre + 'h_covered'] for x in r]):5.0f}% " f"{100 * np.mean([x[pre + 'W_covered'] for x in r]):5.0f}% "
                   f"{100 * np.mean(widened):7.0f}% {100 * np.nanmedian([x[pre + 'h_rel_halfwidth'] for x in r]):6.1f}% "
                   f"{np.mean([x['lambda_over_boundary'] > 1 for x in r]):6.2f} {rows[kind + '_t'] / len(rows[kind]):7.2f}")
             for x in [x for x in r if not x[pre + "h_covered"]][:3]:

@@ -41,7 +41,7 @@ def _timed(fn):
 def dugdale_table(quick):
     levels = (1.0, 2.0, 4.0) if quick else (1.0, 1.5, 2.0, 3.0, 4.0)
     print("\n1. Direct solve, Dugdale law, against M-D-n (exact), n 2-20 x Lambda 0.01-30")
-    print(f"{'level':>6}{'cases':>7}{'nodes (median)':>16}{'time median':>13}{'time max':>10}{'err median':>12}{'err max':>10}")
+    print(f"{'level':>6}{'cases':>7}{'nodes (median)':>16}{'time median':>13}" f"{'time max':>10}{'err median':>12}{'err max':>10}")
     print("-" * 74)
     verdict = ""
     for lev in levels:
@@ -109,7 +109,7 @@ def main(argv=None):
     print(f"pipeline.mechanics.elastic_contact benchmark (python {sys.version.split()[0]}, numpy {np.__version__})")
     t0 = time.perf_counter()
     T.load_elastic_table()
-    print(f"table load: {1e3 * (time.perf_counter() - t0):.0f} ms (built in {float(T.load_elastic_table()['build_seconds']):.0f} s)")
+    print(f"table load: {1e3 * (time.perf_counter() - t0):.0f} ms (built " f"in {float(T.load_elastic_table()['build_seconds']):.0f} s)")
     dugdale_table(args.quick)
     other_laws_table(args.quick)
     fast_path_table(args.quick)

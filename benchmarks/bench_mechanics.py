@@ -158,7 +158,7 @@ def main(argv=None):
     print(f"fast-path pull-off evaluations/s: {1 / t_fast:.3g}  (target >= 1e6 at <= 1e-6)  "
           f"[{ok(1 / t_fast >= 1e6 and max(err_fast, err_fast_dense) <= 1e-6)}]")
     for m in ("mdn", "rigid", "auto"):
-        print(f"200-point W_A(h) curve, {m:<5} fast: {t_curve[m] * 1e3:7.3f} ms  (target <= 5 ms)  [{ok(t_curve[m] <= 5e-3)}]")
+        print(f"200-point W_A(h) curve, {m:<5} fast: {t_curve[m] * 1e3:7.3f} " f"ms  (target <= 5 ms)  [{ok(t_curve[m] <= 5e-3)}]")
     print(f"200-point W_A(h) curve, mdn exact: {t_curve_exact * 1e3:7.1f} ms; fast vs exact max rel err {err_curve:.2e}")
     print(f"1e6 Monte-Carlo inversions (random n, Q, F_p, E*; one h), mdn fast: {t_mc:.2f} s  "
           f"(target <= 10 s)  [{ok(t_mc <= 10)}]; rel err vs exact (2000 pts) {err_mc:.2e}")

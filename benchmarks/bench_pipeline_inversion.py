@@ -73,7 +73,7 @@ def main(argv=None):
                 with tempfile.TemporaryDirectory() as d:
                     r = run_case(Path(d), case, mode, S)
                 print(f"{mode:6s} {S:7d} {100 * r['h_err']:+8.2f} {100 * r['W_err']:+8.2f} {100 * r['ci_rel']:15.1f} "
-                      f"{str(r['covered']):>11s} {r['t_inv']:11.2f} {r['t_rng']:8.2f} {r['t_inv'] + r['t_rng']:8.2f}  {r['status']}")
+                      f"{str(r['covered']):>11s} {r['t_inv']:11.2f} {r['t_rng']:8.2f} " f"{r['t_inv'] + r['t_rng']:8.2f}  {r['status']}")
     print("\n(4 traction laws, 200-point h grid, MC on a 64-point ln-uniform subset; 2 shared CPU cores)")
 
 

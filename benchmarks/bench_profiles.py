@@ -134,7 +134,7 @@ def main(argv=None):
               f"layer found {np.sum(~thin & (layer == 'found'))}, flagged {np.sum(~thin & (layer == 'flagged'))}")
         print(f"\nsummary over {len(rows)} images: median rmsN {np.median(arr('rms_normal')) * 1e9:.3f} nm, "
               f"max {arr('rms_normal').max() * 1e9:.3f} nm; |dn| <= 0.1 in {np.mean(np.abs(arr('dn')) <= 0.1):.0%}; "
-              f"|dF| <= 3 % in {np.mean(arr('force_err_max') <= 0.03):.0%}; median time {np.median(arr('t_profile')):.2f} s")
+              f"|dF| <= 3 % in {np.mean(arr('force_err_max') <= 0.03):.0%}; " f"median time {np.median(arr('t_profile')):.2f} s")
     bench_tip_b()
     # one large image
     from pipeline.synth.tem_image import render_tem_image

@@ -79,10 +79,10 @@ def main() -> int:
         for name, grouped in (("one job per rule", False), ("grouped per tip", True)):
             profile = profile_variant(Path(tmp) / f"profile_{grouped}", grouped)
             rows.append((name, run(Path(tmp) / f"run_{grouped}", profile)))
-    print(f"{'profile':<18} {'cluster jobs':>12} {'SLURM time s':>12} {'work s':>7} {'outside work s/rule job':>24} {'wall s':>7}")
+    print(f"{'profile':<18} {'cluster jobs':>12} {'SLURM time s':>12} " f"{'work s':>7} {'outside work s/rule job':>24} {'wall s':>7}")
     for name, r in rows:
         overhead = (r["slurm_s"] - r["work_s"]) / r["rule_jobs"]
-        print(f"{name:<18} {r['jobs']:>12} {r['slurm_s']:>12.0f} {r['work_s']:>7.1f} {overhead:>24.1f} {r['wall_s']:>7.0f}")
+        print(f"{name:<18} {r['jobs']:>12} {r['slurm_s']:>12.0f} " f"{r['work_s']:>7.1f} {overhead:>24.1f} {r['wall_s']:>7.0f}")
     print("summary.csv identical in both runs:", rows[0][1]["summary"] == rows[1][1]["summary"])
     return 0
 

@@ -17,7 +17,7 @@
 Each stage loads and validates the tip YAML (units -> SI), then calls one function of the
 science package.  Errors print one line naming the file and the reason and exit with
 status 1.  `python -m pipeline <command> --help` lists a command's options.
-"""
+"""  # noqa: E501 (the usage lines are the --help text)
 from __future__ import annotations
 
 import argparse

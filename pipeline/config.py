@@ -97,7 +97,7 @@ def _error_message(err: jsonschema.ValidationError, root: dict) -> str:
     schema = _schema_at(root, err.absolute_path)
     if err.validator == "type" and "x-unit" in schema:
         kind = schema["x-unit"].replace("_", " ")
-        return f"{where}: {err.instance!r} has no unit; write a {kind} with its unit, e.g. '{err.instance} {example_unit(schema['x-unit'])}'"
+        return (f"{where}: {err.instance!r} has no unit; write a {kind} with its " f"unit, e.g. '{err.instance} {example_unit(schema['x-unit'])}'")
     if err.validator == "pattern" and "x-unit" in schema:
         return f"{where}: {err.instance!r} is not '<number> <unit>' (a {schema['x-unit'].replace('_', ' ')})"
     if err.validator == "additionalProperties":
@@ -288,7 +288,7 @@ def _check_intervals(tip: dict, path) -> None:
         if ref not in names:
             raise ConfigError(f"{path}: reference_intervals[{i}]: {ref!r} is not an interval name (have {names})")
     if len(set(tip["reference_intervals"])) == len(names):
-        raise ConfigError(f"{path}: reference_intervals: every interval is a reference; at least one worn interval is needed to find h")
+        raise ConfigError(f"{path}: reference_intervals: every interval is a " "reference; at least one worn interval is needed to find h")
 
 
 def _resolve_interval(iv: dict, i: int, tip: dict, data_dir: Path, path, check_files: bool) -> None:

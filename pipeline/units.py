@@ -61,7 +61,7 @@ def parse_quantity(text, kind: str, where: str = "") -> float:
         if kind == "angle":
             raise QuantityError(f"{loc}angle needs a unit ('deg' or 'rad'), got bare number {text!r}")
         unit = example_unit(kind)
-        raise QuantityError(f"{loc}bare number {text!r} has no unit; write it with a unit of {kind.replace('_', ' ')}, e.g. '{text} {unit}'")
+        raise QuantityError(f"{loc}bare number {text!r} has no unit; write it with a " f"unit of {kind.replace('_', ' ')}, e.g. '{text} {unit}'")
     m = _NUMBER_UNIT.match(text)
     if not m or not m.group(4):
         raise QuantityError(f"{loc}{text!r} is not '<number> <unit>' (e.g. '{_example(kind)}')")

@@ -5,8 +5,9 @@ Waals laws, a Sneddon contact of finite stiffness, an anti-alias filter, lever r
 noise) draws curves whose pull-off is a sharp jump (soft lever), a corner (stiff lever, Dugdale:
 smooth detachment) or a rounded minimum (stiff lever passing a smooth maximum).  Each is read
 within 1.5 % or 2.5 of its own uncertainties (a
-stiff lever's small deflection, read around a corner the filter rounds: 2 % or 3 uncertainties) (benchmarks/bench_forces_independent.py: the
-interval means over 8 seeds per case are within 1 % except where the contact stiffness biases
+stiff lever's small deflection, read around a corner the filter rounds: 2 % or 3 uncertainties)
+(benchmarks/bench_forces_independent.py: the interval means over 8 seeds per case are within 1 %
+except where the contact stiffness biases
 the contact-slope InvOLS, which stage 4 corrects; see the second test).
 """
 from __future__ import annotations

@@ -86,11 +86,11 @@ rule {rule}:
 """
 _ENDINGS = {
     "its time limit was reached (runtime)":
-        "slurmstepd-vm: error: *** JOB 71 ON vm CANCELLED AT 2026-11-24T19:37:37 DUE TO TIME LIMIT ***\n",
+        "slurmstepd-vm: error: *** JOB 71 ON vm CANCELLED " "AT 2026-11-24T19:37:37 DUE TO TIME LIMIT ***\n",
     "it ran out of memory (mem_mb)":
-        "srun: error: vm: task 0: Out Of Memory\nslurmstepd-vm: error: Detected 1 oom-kill event(s) in StepId=4.0.\n",
+        "srun: error: vm: task 0: Out Of Memory\nslurmstepd-vm: " "error: Detected 1 oom-kill event(s) in StepId=4.0.\n",
     "it was cancelled (scancel or an administrator)":
-        "slurmstepd-vm: error: *** JOB 80 ON vm CANCELLED AT 2026-11-24T20:01:02 ***\n",
+        "slurmstepd-vm: error: *** JOB 80 ON vm " "CANCELLED AT 2026-11-24T20:01:02 ***\n",
     "its command failed": "Error in rule forces:\n    message: None\n",
 }
 

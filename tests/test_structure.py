@@ -156,7 +156,7 @@ def test_no_function_over_60_lines():
 def test_a_stage_loads_only_what_it_uses(modules, not_loaded):
     """Importing a stage (what its job does before it works) loads no plotting library (its figure
     function imports that when it draws) and no science it does not use."""
-    code = f"import sys, importlib\nfor m in {modules!r}: importlib.import_module(m)\nprint([k for k in {not_loaded!r} if k in sys.modules])"
+    code = (f"import sys, importlib\nfor m in {modules!r}: " f"importlib.import_module(m)\nprint([k for k in {not_loaded!r} if k in sys.modules])")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(PACKAGE.parent)})
     assert proc.returncode == 0, proc.stderr[-1500:]

@@ -135,4 +135,4 @@ def widen_if_inconsistent(g, x0, m0, xss, mss, edge_s, x):
     side = np.where(np.isfinite(xw) & (xw < x[0]), -1, np.where(np.isfinite(xw) & (xw > x[-1]), 1, edge_s))
     xw = np.where((xw < x[0]) | (xw > x[-1]), np.nan, xw)
     _percentiles(g, xw, mw, side)
-    g["note"] += f"{_verdict(g)}: the confidence intervals of h and W_A are widened by the Birge ratio sqrt(chi2/dof) = {B:.2f}. "
+    g["note"] += f"{_verdict(g)}: the confidence intervals of h and W_A " f"are widened by the Birge ratio sqrt(chi2/dof) = {B:.2f}. "

@@ -81,7 +81,7 @@ def _file_value(curves, attr, label):
     if vals.size == 0:
         return None
     if np.ptp(vals) > 1e-6 * abs(vals.mean()):
-        raise CalibrationError(f"the curve files store different {label} values ({vals.min():.6g} .. {vals.max():.6g}); give cantilever.{'spring_constant' if attr == 'spring_constant' else 'deflection_sensitivity'} in the tip YAML")
+        raise CalibrationError(f"the curve files store different {label} values ({vals.min():.6g} .. {vals.max():.6g}); give " f"cantilever.{'spring_constant' if attr == 'spring_constant' else 'deflection_sensitivity'} in the tip YAML")
     return float(vals[0])
 
 
@@ -183,7 +183,7 @@ def _invols_from_files(cant, curves, per_interval, x, u) -> str:
     if per_interval:
         x["invols"], u["invols"] = np.nan, 0.0
         return "none at tip level (InvOLS per interval)"
-    raise CalibrationError("no deflection sensitivity (InvOLS): the curve files carry none; give cantilever.deflection_sensitivity or cantilever.hard_sample_curves")
+    raise CalibrationError("no deflection sensitivity (InvOLS): the curve files carry none; give " "cantilever.deflection_sensitivity or cantilever.hard_sample_curves")
 
 
 def _spring_constant(cant, reader, curves, details, x, u):
@@ -202,7 +202,7 @@ def _spring_constant(cant, reader, curves, details, x, u):
     elif km == "file":
         v = _file_value(curves, "spring_constant", "spring constant")
         if v is None:
-            raise CalibrationError("no spring constant: the curve files carry none; give cantilever.spring_constant, reference_lever or thermal")
+            raise CalibrationError("no spring constant: the curve files carry none; give " "cantilever.spring_constant, reference_lever or thermal")
         x["k"], u["k"] = v, cant.get("spring_constant_uncertainty", 0.0)
         k_fun = lambda p: p["k"]  # noqa: E731
         k_src = "force-curve file metadata" + ("" if u["k"] else " (uncertainty unknown: 0)")
@@ -274,7 +274,7 @@ def _reference_setup(cant, reader, x, u, details):
     except ValueError as exc:
         raise CalibrationError(f"reference lever: {exc}") from None
     details["reference_lever"] = _reference_details(x, u, length, tc)
-    src = f"reference lever (Tortonese & Kirk 1997): k = k_ref (L/(L-dL))^3 (InvOLS_ref/InvOLS_hard - 1) cos^p(tilt), tilt_correction={tc}; {r_src}"
+    src = ("reference lever (Tortonese & Kirk 1997): k = k_ref (L/(L-dL))^3 " f"(InvOLS_ref/InvOLS_hard - 1) cos^p(tilt), tilt_correction={tc}; {r_src}")
     return k_fun, src
 
 
@@ -312,5 +312,5 @@ def _thermal_setup(cant, x, u, details):
         "temperature": (x["T"], "K", "temperature"),
         "shape_factor": (SHAPE_FACTOR[th["lever_shape"]], "1", f"{th['lever_shape']} lever correction"),
     }
-    src = f"thermal noise ({th['lever_shape']}, C = {SHAPE_FACTOR[th['lever_shape']]}): k = C k_B T/<z^2>, SHO fit f0 = {fit.f0:.5g} Hz, Q = {fit.Q:.3g}, file {files[0].name}"
+    src = (f"thermal noise ({th['lever_shape']}, C = {SHAPE_FACTOR[th['lever_shape']]}): k = " f"C k_B T/<z^2>, SHO fit f0 = {fit.f0:.5g} Hz, Q = {fit.Q:.3g}, file {files[0].name}")
     return k_fun, src

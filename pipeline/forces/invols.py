@@ -23,8 +23,9 @@ Sources (``cantilever.deflection_sensitivity_method``):
   for setups that are never remounted; drawn once per tip in the Monte Carlo.
 
 Whatever the source, the contact slope of the interval's own curves is measured and recorded
-(``contact_slope.contact_slope``, which says why a curve gives none); where it differs from the InvOLS in use by more than ``invols_check_sigma`` combined standard
-uncertainties, the interval is flagged in words.  A curve whose contact part is too short or not
+(``contact_slope.contact_slope``, which says why a curve gives none); where it differs from the
+InvOLS in use by more than ``invols_check_sigma`` combined standard uncertainties, the interval is flagged in
+words.  A curve whose contact part is too short or not
 linear cannot give InvOLS; the reason is recorded, and if no curve of the interval gives one the
 interval falls back to the tip-level value (``contact_fallback: tip``) or fails naming the
 interval and the setting (``fail``, the default).
@@ -222,7 +223,7 @@ def _from_contact(contact, n_curves: int, tip_cal, cant, in_volts: bool, label: 
                f"counter-surface, u = SEM with a {100 * contact.floor:g} % floor")
         if np.isfinite(tip_cal.invols):
             src += (f"; the tip-level InvOLS of the calibration session ({tip_cal.invols * 1e9:.4g} nm/V) differs by "
-                    f"{100 * (tip_cal.invols / contact.mean - 1):+.1f} % (not used: the chip is remounted for every interval)")
+                    f"{100 * (tip_cal.invols / contact.mean - 1):+.1f} % " "(not used: the chip is remounted for every interval)")
         res = IntervalInvols(contact.mean, contact.u, "contact", src, False, contact)
         if contact.n < n_curves:
             res.warnings.append(f"{n_curves - contact.n} curve(s) gave no contact slope ({_contact_reasons(contact)})")

@@ -42,8 +42,8 @@ if TYPE_CHECKING:  # the stage's types; the reader (stage 4) needs none of the s
     from pipeline.forces.statistics import IntervalStats
 
 OUTLIER_RULES = {
-    "esd": "generalized ESD test (Rosner 1983) at significance outlier_alpha over accepted curves, up to floor(n/3) outliers (none if n < 3)",
-    "modified_z": "modified z-score 0.6745 |x - median| / MAD > outlier_z over accepted curves (none flagged if n < 3 or MAD = 0)",
+    "esd": "generalized ESD test (Rosner 1983) at significance outlier_alpha " "over accepted curves, up to floor(n/3) outliers (none if n < 3)",
+    "modified_z": "modified z-score 0.6745 |x - median| / MAD > outlier_z " "over accepted curves (none flagged if n < 3 or MAD = 0)",
 }
 MEAN_RULE = ("random-effects weighted mean over accepted non-outlier curves, weights 1/(u_i^2 + tau^2) with tau the "
              "between-curve scatter (DerSimonian-Laird; the plain mean for equal u_i); sem: modified Knapp-Hartung")

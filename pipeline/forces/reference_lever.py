@@ -27,5 +27,5 @@ def reference_lever_k(k_ref, invols_hard, invols_ref, *, length=None, offset=0.0
         k_eff = k_ref * (length / (length - offset)) ** 3
     ratio = invols_ref / invols_hard
     if not ratio > 1:
-        raise ValueError(f"InvOLS on the reference lever ({invols_ref:.4g} m/V) must exceed the hard-surface InvOLS ({invols_hard:.4g} m/V)")
+        raise ValueError(f"InvOLS on the reference lever ({invols_ref:.4g} m/V) must " f"exceed the hard-surface InvOLS ({invols_hard:.4g} m/V)")
     return float(k_eff * (ratio - 1.0) * np.cos(tilt) ** TILT_POWER[tilt_correction])

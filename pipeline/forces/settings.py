@@ -28,7 +28,8 @@ READER_DEFAULTS = {
 
 CANTILEVER_DEFAULTS = {
     "spring_constant_method": "auto",  # auto | given | file | reference_lever | thermal
-    "deflection_sensitivity_method": "auto",  # auto | contact | interval_curves | interval_given | given | hard_sample | file
+    # deflection_sensitivity_method: auto | contact | interval_curves | interval_given | given | hard_sample | file
+    "deflection_sensitivity_method": "auto",
     "contact_fallback": "fail",  # fail | tip: an interval whose own curves give no contact slope
     "invols_check_sigma": 3.0,  # report a contact slope that disagrees with the InvOLS in use beyond this
     "contact_invols_floor": 0.005,  # relative systematic uncertainty of a contact-slope InvOLS

@@ -98,7 +98,7 @@ def read_thermal_file(path):
     for pcol, unit in (("psd_V2_per_Hz", "V"), ("psd_m2_per_Hz", "m")):
         if "frequency_Hz" in cols and pcol in cols:
             return df["frequency_Hz"].to_numpy(float), df[pcol].to_numpy(float), 0, unit
-    raise ValueError(f"{path}: thermal file needs columns time_s + deflection_V|deflection_m or frequency_Hz + psd_V2_per_Hz|psd_m2_per_Hz; found {cols}")
+    raise ValueError(f"{path}: thermal file needs columns time_s + deflection_V|deflection_m " f"or frequency_Hz + psd_V2_per_Hz|psd_m2_per_Hz; found {cols}")
 
 
 def thermal_k(msq_m2, temperature, lever_shape="rectangular"):

@@ -279,8 +279,8 @@ def pulloff_with_model(law, n, Q, E_star, W, h, mode="auto", exact=False):
     """Pull-off F_p [N] and the model that made each value ("rigid", "mdn" or "elastic").
 
     law: traction law; mode: pipeline solver_mode ("auto": rigid where Lambda < Lambda_b(n)
-    (:func:`rigid_boundary`; Eq. 13 for Dugdale), else the law's elastic model; "mdn": always the elastic model (M-D-n for Dugdale,
-    the elastic solver otherwise); "rigid"); arrays broadcast.
+    (:func:`rigid_boundary`; Eq. 13 for Dugdale), else the law's elastic model; "mdn": always the
+    elastic model (M-D-n for Dugdale, the elastic solver otherwise); "rigid"); arrays broadcast.
     """
     pot = V.potential(law)
     mdl = V.model(_mode(mode, pot), pot)

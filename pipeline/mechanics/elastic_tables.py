@@ -2,8 +2,9 @@
 
 Tabulated: y_law(n, Lambda) = log(P~_law / P~_MDn), the elastic pull-off of the law (direct
 solve, :mod:`.elastic_contact`, grid level 4: within 0.13 % of M-D-n for the Dugdale law) over the
-M-D-n (Dugdale) pull-off at the same (n, Lambda); the fast path is P~_law = P~_MDn(fast table, :mod:`.tables`) * exp(y_law).  y is
-bounded and smooth: log of the rigid ratio (paper Fig. 8) for Lambda -> 0, 0 for Lambda -> inf
+M-D-n (Dugdale) pull-off at the same (n, Lambda); the fast path is
+P~_law = P~_MDn(fast table, :mod:`.tables`) * exp(y_law).  y is bounded and smooth: log of the
+rigid ratio (paper Fig. 8) for Lambda -> 0, 0 for Lambda -> inf
 (JKR: only W_A matters).  Grid: 16 nodes uniform in log n over [2, 20] x 32 nodes uniform in
 log Lambda over [1e-3, 30]; bicubic interpolating spline.  Outside the Lambda range y is held at
 its end value: below 1e-3 the elastic corrections are < 2e-5 (rigid limit), above 30 every law

@@ -51,7 +51,7 @@ def _instability_gaps(F_p, k, lam):
     h = lambda u: a * u / (1.0 + u * u) ** 2 - 1.0  # noqa: E731
     u_peak = 1.0 / np.sqrt(3.0)
     if h(u_peak) <= 0:
-        raise ValueError(f"no jump-off: lever k={k:g} N/m is too stiff for F_p={F_p:g} N over range {lam:g} m (need F_p > 1.54 k lam)")
+        raise ValueError(f"no jump-off: lever k={k:g} N/m is too stiff for " f"F_p={F_p:g} N over range {lam:g} m (need F_p > 1.54 k lam)")
     u_off = brentq(h, 0.0, u_peak, xtol=1e-15, rtol=1e-14)
     u_snap = brentq(h, u_peak, 2.0 * a ** (1 / 3) + 2.0, xtol=1e-14)
     return u_off * lam, u_snap * lam
@@ -134,7 +134,7 @@ def write_curve_csv(path, curve: SyntheticCurve) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     t = curve.truth
     with open(path, "w", newline="") as fh:
-        fh.write(f"# synthetic force curve: F_p={t['F_p']:.6e} N k={t['k']:.6e} N/m invols={t['invols']:.6e} m/V seed={t['seed']}\n")
+        fh.write(f"# synthetic force curve: F_p={t['F_p']:.6e} N k={t['k']:.6e} " f"N/m invols={t['invols']:.6e} m/V seed={t['seed']}\n")
         w = csv.writer(fh)
         w.writerow(["height_nm", "deflection_V", "segment"])
         w.writerows(zip((f"{h:.6f}" for h in curve.height * 1e9), (f"{v:.7e}" for v in curve.deflection_V), curve.segment))

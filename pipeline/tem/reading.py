@@ -99,8 +99,8 @@ def read_tem_image(path, pixel_size=None, check_plausible=True) -> TemImage:
 
     ``pixel_size`` (m, or a string such as "0.25 nm") is used only when the file
     has no calibration (or an implausible one).  ``check_plausible``: refuse pixel sizes outside
-    ``PLAUSIBLE_PIXEL`` (a tip-apex image; off for reading any micrograph).  Raises TemReadError / PixelSizeError / EmptyImageError
-    (ValueError subclasses) naming the file.
+    ``PLAUSIBLE_PIXEL`` (a tip-apex image; off for reading any micrograph).  Raises TemReadError /
+    PixelSizeError / EmptyImageError (ValueError subclasses) naming the file.
     """
     path = Path(path)
     data, cal, source = _read_file(path)
