@@ -94,7 +94,8 @@ report: $(BIN)/.installed       ## HTML report of a finished run (all figures an
 	$(BIN)/snakemake --report results/report.html
 
 # ruff ([tool.ruff] in pyproject.toml), snakefmt ([tool.snakefmt]) and Snakemake's own linter.
-lint: $(BIN)/.installed         ## the style checks: ruff check, snakefmt --check, snakemake --lint
+lint: $(BIN)/.installed         ## the style checks: ruff format --check, ruff check, snakefmt --check, snakemake --lint
+	$(BIN)/ruff format --check .
 	$(BIN)/ruff check .
 	$(BIN)/snakefmt --check Snakefile workflow_rules
 	$(BIN)/snakemake --lint

@@ -41,7 +41,10 @@ def _timed(fn):
 def dugdale_table(quick):
     levels = (1.0, 2.0, 4.0) if quick else (1.0, 1.5, 2.0, 3.0, 4.0)
     print("\n1. Direct solve, Dugdale law, against M-D-n (exact), n 2-20 x Lambda 0.01-30")
-    print(f"{'level':>6}{'cases':>7}{'nodes (median)':>16}{'time median':>13}" f"{'time max':>10}{'err median':>12}{'err max':>10}")
+    print(
+        f"{'level':>6}{'cases':>7}{'nodes (median)':>16}{'time median':>13}"
+        f"{'time max':>10}{'err median':>12}{'err max':>10}"
+    )
     print("-" * 74)
     verdict = ""
     for lev in levels:
@@ -51,18 +54,26 @@ def dugdale_table(quick):
             ts.append(t)
             nodes.append(r.nodes)
             errs.append(abs(r.pulloff_nd / float(pulloff_mdn_exact(n, lam)) - 1.0))
-        print(f"{lev:>6g}{len(ts):>7}{np.median(nodes):>16.0f}{np.median(ts):>11.3f} s{max(ts):>8.2f} s"
-              f"{np.median(errs):>11.2e}{max(errs):>10.2e}")
+        print(
+            f"{lev:>6g}{len(ts):>7}{np.median(nodes):>16.0f}{np.median(ts):>11.3f} s{max(ts):>8.2f} s"
+            f"{np.median(errs):>11.2e}{max(errs):>10.2e}"
+        )
         if lev == 2.0:
             ok = max(ts) <= 1.0 and max(errs) <= 5e-3
-            verdict = (f"default level 2: every pull-off <= {max(ts):.2f} s at <= {100 * max(errs):.2f} % "
-                       f"(target <= 1 s at <= 0.5 %) [{'OK' if ok else 'MISS'}]")
+            verdict = (
+                f"default level 2: every pull-off <= {max(ts):.2f} s at <= {100 * max(errs):.2f} % "
+                f"(target <= 1 s at <= 0.5 %) [{'OK' if ok else 'MISS'}]"
+            )
     print(verdict)
     # the error estimate (level/2 re-solve) against the true error, default level
     est = [(elastic_pulloff(n, lam, "dugdale", estimate_error=True), n, lam) for n, lam in _cases(quick)]
-    ratio = [abs(r.pulloff_nd / float(pulloff_mdn_exact(n, lam)) - 1) / max(r.error_estimate, 1e-12) for r, n, lam in est]
-    print(f"error estimate (level 2 vs level 1): true error / estimate median {np.median(ratio):.2f}, "
-          f"max {max(ratio):.2f}")
+    ratio = [
+        abs(r.pulloff_nd / float(pulloff_mdn_exact(n, lam)) - 1) / max(r.error_estimate, 1e-12) for r, n, lam in est
+    ]
+    print(
+        f"error estimate (level 2 vs level 1): true error / estimate median {np.median(ratio):.2f}, "
+        f"max {max(ratio):.2f}"
+    )
 
 
 def other_laws_table(quick):
@@ -84,22 +95,34 @@ def fast_path_table(quick):
     nn = rng.uniform(2, 20, N)
     ll = np.exp(rng.uniform(np.log(1e-4), np.log(1e3), N))
     k = 8 if quick else 30
-    print("\n3. Fast path (table): evaluations/s (10^6 random (n, Lambda)) and error vs the direct solve "
-          f"({k} random off-node points per law, Lambda 1e-3-30)")
+    print(
+        "\n3. Fast path (table): evaluations/s (10^6 random (n, Lambda)) and error vs the direct solve "
+        f"({k} random off-node points per law, Lambda 1e-3-30)"
+    )
     print(f"{'law':>6}{'evals/s fwd':>13}{'evals/s inverse':>17}{'err max':>10}{'err rms':>10}  target")
     print("-" * 76)
-    Q = M.q_from_rs(nn[:10**5], 25e-9, 1.0)
+    Q = M.q_from_rs(nn[: 10**5], 25e-9, 1.0)
     E = np.full(10**5, 50e9)
     h = np.full(10**5, 0.5e-9)
     for law in ("lj", "tri1", "tri2"):
         _, t = _timed(lambda: M.pulloff_nd(nn, ll, potential=law, model="elastic"))
-        F = M.pulloff_force(nn[:10**5], Q, E, 0.2, h, potential=law, model="elastic")
-        _, ti = _timed(lambda: M.work_of_adhesion(F, nn[:10**5], Q, E, h, potential=law, model="elastic"))
-        err = np.array([T.table_error(law, float(np.exp(rng.uniform(np.log(2), np.log(20)))),
-                                      float(np.exp(rng.uniform(np.log(1e-3), np.log(30))))) for _ in range(k)])
+        F = M.pulloff_force(nn[: 10**5], Q, E, 0.2, h, potential=law, model="elastic")
+        _, ti = _timed(lambda: M.work_of_adhesion(F, nn[: 10**5], Q, E, h, potential=law, model="elastic"))
+        err = np.array(
+            [
+                T.table_error(
+                    law,
+                    float(np.exp(rng.uniform(np.log(2), np.log(20)))),
+                    float(np.exp(rng.uniform(np.log(1e-3), np.log(30)))),
+                )
+                for _ in range(k)
+            ]
+        )
         ok = N / t >= 1e5 and np.max(np.abs(err)) <= 5e-3
-        print(f"{law:>6}{N / t:>13.3g}{1e5 / ti:>17.3g}{np.max(np.abs(err)):>10.2e}{np.sqrt(np.mean(err**2)):>10.2e}"
-              f"  >= 1e5/s at <= 0.5 % [{'OK' if ok else 'MISS'}]")
+        print(
+            f"{law:>6}{N / t:>13.3g}{1e5 / ti:>17.3g}{np.max(np.abs(err)):>10.2e}{np.sqrt(np.mean(err**2)):>10.2e}"
+            f"  >= 1e5/s at <= 0.5 % [{'OK' if ok else 'MISS'}]"
+        )
 
 
 def main(argv=None):
@@ -109,7 +132,10 @@ def main(argv=None):
     print(f"pipeline.mechanics.elastic_contact benchmark (python {sys.version.split()[0]}, numpy {np.__version__})")
     t0 = time.perf_counter()
     T.load_elastic_table()
-    print(f"table load: {1e3 * (time.perf_counter() - t0):.0f} ms (built " f"in {float(T.load_elastic_table()['build_seconds']):.0f} s)")
+    print(
+        f"table load: {1e3 * (time.perf_counter() - t0):.0f} ms (built "
+        f"in {float(T.load_elastic_table()['build_seconds']):.0f} s)"
+    )
     dugdale_table(args.quick)
     other_laws_table(args.quick)
     fast_path_table(args.quick)

@@ -10,6 +10,7 @@ of the job time that is start-up (jobs x the start-up of their command, measured
 Usage: python benchmarks/bench_many_tips.py [--tips 20] [--intervals 6] [--cores 2]
 It prints a table; it never fails on time.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,8 +29,13 @@ from bench_pipeline_run import run_snakemake  # noqa: E402
 from bench_startup import ENTRIES, entry_module, wall_time  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-RULE_COMMAND = {"profiles": "profiles", "fits": "fit", "forces": "forces", "inversion": "inversion",
-                "adhesion_range": "adhesion-range"}
+RULE_COMMAND = {
+    "profiles": "profiles",
+    "fits": "fit",
+    "forces": "forces",
+    "inversion": "inversion",
+    "adhesion_range": "adhesion-range",
+}
 
 
 def make_tips(root: Path, n_tips: int, n_intervals: int) -> Path:
@@ -40,11 +46,18 @@ def make_tips(root: Path, n_tips: int, n_intervals: int) -> Path:
     tips = []
     for i in range(n_tips):
         n_last = rng.uniform(4.5, 6.0)
-        tips.append(dataclasses.replace(
-            base, name=f"tip{i:02d}", seed=1000 + i, R=float(rng.uniform(8e-9, 15e-9)),
-            n=[float(x) for x in np.linspace(2.0, n_last, n_intervals)],
-            scans=[int(x) for x in np.linspace(0, 100, n_intervals)],
-            W_A=float(rng.uniform(0.04, 0.1)), h=float(rng.uniform(3e-9, 5.5e-9))))
+        tips.append(
+            dataclasses.replace(
+                base,
+                name=f"tip{i:02d}",
+                seed=1000 + i,
+                R=float(rng.uniform(8e-9, 15e-9)),
+                n=[float(x) for x in np.linspace(2.0, n_last, n_intervals)],
+                scans=[int(x) for x in np.linspace(0, 100, n_intervals)],
+                W_A=float(rng.uniform(0.04, 0.1)),
+                h=float(rng.uniform(3e-9, 5.5e-9)),
+            )
+        )
     write_sample_bundle(out=root / "data", config_dir=root / "tips", tips=tips)
     return root / "tips"
 
@@ -78,14 +91,18 @@ def main():
         times = job_times(tmp / "results")
     total = sum(s for _, s in times.values())
     jobs = sum(n for n, _ in times.values())
-    start = sum(min(s, n * startup.get(RULE_COMMAND.get(rule, ""), np.median(list(startup.values()))))
-                for rule, (n, s) in times.items())
+    start = sum(
+        min(s, n * startup.get(RULE_COMMAND.get(rule, ""), np.median(list(startup.values()))))
+        for rule, (n, s) in times.items()
+    )
     print(f"{args.tips} tips x {args.intervals} intervals on {args.cores} cores (generated in {t_gen:.0f} s)")
     print(f"{'rule':<22}{'jobs':>6}{'job time s':>12}{'per job s':>11}")
     for rule, (n, s) in sorted(times.items(), key=lambda kv: -kv[1][1]):
         print(f"{rule:<22}{n:>6}{s:>12.1f}{s / n:>11.2f}")
-    print(f"wall {wall:.0f} s; job time {total:.0f} s over {jobs} jobs; start-up ~{start:.0f} s "
-          f"({100 * start / max(total, 1e-9):.0f} % of the job time)")
+    print(
+        f"wall {wall:.0f} s; job time {total:.0f} s over {jobs} jobs; start-up ~{start:.0f} s "
+        f"({100 * start / max(total, 1e-9):.0f} % of the job time)"
+    )
 
 
 if __name__ == "__main__":

@@ -49,7 +49,10 @@ def mp_rigid_ratio(n, law):
             if law == "lj":
                 return mp.quad(f, [0, 1, mp.inf])
             top = 1 if law == "tri1" else 2
-            br = sorted({b ** (2 / n) for b in (mp.mpf(1) / 2 - D, 1 - D, 2 - D) if 0 < b < top - D + 1e-30} | {0, (top - D) ** (2 / n)})
+            br = sorted(
+                {b ** (2 / n) for b in (mp.mpf(1) / 2 - D, 1 - D, 2 - D) if 0 < b < top - D + 1e-30}
+                | {0, (top - D) ** (2 / n)}
+            )
             return mp.quad(f, br)
 
         lo, hi = mp.mpf(0), mp.mpf(1.5)
@@ -115,11 +118,19 @@ def main(argv=None):
     t_auto = timeit(lambda: M.pulloff_nd(nn6, ll6, model="auto")) / N
     rows.append(("auto (rigid | M-D-n fast)", t_auto, np.nan, "model switch"))
     # rigid closed forms
-    n_rig = np.array([2.0, 3.0, 5.0, 10.0, 20.0]) if args.quick else np.array([2.0, 2.5, 3.0, 4.0, 5.0, 7.0, 10.0, 15.0, 20.0])
+    n_rig = (
+        np.array([2.0, 3.0, 5.0, 10.0, 20.0])
+        if args.quick
+        else np.array([2.0, 2.5, 3.0, 4.0, 5.0, 7.0, 10.0, 15.0, 20.0])
+    )
     for law in ("dugdale", "tri1", "tri2", "lj"):
         t_r = timeit(lambda: M.pulloff_nd(nn6, ll6, potential=law, model="rigid")) / N
         if law == "dugdale":
-            err = np.max(np.abs(M.pulloff_nd(n_rig, 0.3, model="rigid") / (n_rig ** (2 / n_rig) * 0.3 ** ((n_rig - 2) / n_rig)) - 1))
+            err = np.max(
+                np.abs(
+                    M.pulloff_nd(n_rig, 0.3, model="rigid") / (n_rig ** (2 / n_rig) * 0.3 ** ((n_rig - 2) / n_rig)) - 1
+                )
+            )
             note = "Eq. 12 identity"
         else:
             r_ref = np.array([float(mp_rigid_ratio(v, law)) for v in n_rig])
@@ -131,7 +142,9 @@ def main(argv=None):
     h = np.geomspace(0.05e-9, 50e-9, 200)
     Q = M.q_from_rs(4.0, 30e-9, 1.0)
     F = M.pulloff_force(4.0, Q, 150e9, 0.1, 1e-9)
-    t_curve = {m: timeit(lambda m=m: M.work_of_adhesion(F, 4.0, Q, 150e9, h, model=m), 20) for m in ("mdn", "rigid", "auto")}
+    t_curve = {
+        m: timeit(lambda m=m: M.work_of_adhesion(F, 4.0, Q, 150e9, h, model=m), 20) for m in ("mdn", "rigid", "auto")
+    }
     t_curve_exact = timeit(lambda: M.work_of_adhesion(F, 4.0, Q, 150e9, h, exact=True), 1)
     W_true = M.work_of_adhesion(F, 4.0, Q, 150e9, h, exact=True)
     err_curve = np.max(np.abs(M.work_of_adhesion(F, 4.0, Q, 150e9, h) / W_true - 1))
@@ -155,13 +168,22 @@ def main(argv=None):
         print(f"{name:<32}{t * 1e6:>11.3f} us{1 / t:>12.3g}{e:>14}  {note}")
     print("-" * 96)
     ok = lambda c: "OK " if c else "MISS"
-    print(f"fast-path pull-off evaluations/s: {1 / t_fast:.3g}  (target >= 1e6 at <= 1e-6)  "
-          f"[{ok(1 / t_fast >= 1e6 and max(err_fast, err_fast_dense) <= 1e-6)}]")
+    print(
+        f"fast-path pull-off evaluations/s: {1 / t_fast:.3g}  (target >= 1e6 at <= 1e-6)  "
+        f"[{ok(1 / t_fast >= 1e6 and max(err_fast, err_fast_dense) <= 1e-6)}]"
+    )
     for m in ("mdn", "rigid", "auto"):
-        print(f"200-point W_A(h) curve, {m:<5} fast: {t_curve[m] * 1e3:7.3f} " f"ms  (target <= 5 ms)  [{ok(t_curve[m] <= 5e-3)}]")
-    print(f"200-point W_A(h) curve, mdn exact: {t_curve_exact * 1e3:7.1f} ms; fast vs exact max rel err {err_curve:.2e}")
-    print(f"1e6 Monte-Carlo inversions (random n, Q, F_p, E*; one h), mdn fast: {t_mc:.2f} s  "
-          f"(target <= 10 s)  [{ok(t_mc <= 10)}]; rel err vs exact (2000 pts) {err_mc:.2e}")
+        print(
+            f"200-point W_A(h) curve, {m:<5} fast: {t_curve[m] * 1e3:7.3f} "
+            f"ms  (target <= 5 ms)  [{ok(t_curve[m] <= 5e-3)}]"
+        )
+    print(
+        f"200-point W_A(h) curve, mdn exact: {t_curve_exact * 1e3:7.1f} ms; fast vs exact max rel err {err_curve:.2e}"
+    )
+    print(
+        f"1e6 Monte-Carlo inversions (random n, Q, F_p, E*; one h), mdn fast: {t_mc:.2f} s  "
+        f"(target <= 10 s)  [{ok(t_mc <= 10)}]; rel err vs exact (2000 pts) {err_mc:.2e}"
+    )
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ stages 4 + 5 stay within about a minute on one of our cores with a few GB of mem
 
 Usage: python benchmarks/bench_monte_carlo.py [sizes, default 2000,10000,50000]
 """
+
 from __future__ import annotations
 
 import json
@@ -30,14 +31,18 @@ print(json.dumps(dict(t_inv=r["t_inv"], t_rng=r["t_rng"], h_err=r["h_err"], ci=r
 
 def main(sizes):
     code = CHILD.format(bench=str(Path(__file__).parent))
-    print(f"{'samples':>8s} {'inversion s':>11s} {'range s':>8s} {'total s':>8s} {'us/sample':>9s} {'peak GB':>8s} "
-          f"{'files MB':>8s} {'h err %':>8s} {'CI95 width %':>12s}")
+    print(
+        f"{'samples':>8s} {'inversion s':>11s} {'range s':>8s} {'total s':>8s} {'us/sample':>9s} {'peak GB':>8s} "
+        f"{'files MB':>8s} {'h err %':>8s} {'CI95 width %':>12s}"
+    )
     for S in sizes:
         out = subprocess.run([sys.executable, "-c", code, str(S)], check=True, capture_output=True, text=True).stdout
         r = json.loads(out.strip().splitlines()[-1])
         tot = r["t_inv"] + r["t_rng"]
-        print(f"{S:8d} {r['t_inv']:11.2f} {r['t_rng']:8.2f} {tot:8.2f} {1e6 * tot / S:9.0f} {r['rss'] / 1e9:8.2f} "
-              f"{r['files'] / 1e6:8.0f} {100 * r['h_err']:+8.2f} {100 * r['ci']:12.1f}")
+        print(
+            f"{S:8d} {r['t_inv']:11.2f} {r['t_rng']:8.2f} {tot:8.2f} {1e6 * tot / S:9.0f} {r['rss'] / 1e9:8.2f} "
+            f"{r['files'] / 1e6:8.0f} {100 * r['h_err']:+8.2f} {100 * r['ci']:12.1f}"
+        )
 
 
 if __name__ == "__main__":

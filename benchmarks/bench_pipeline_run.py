@@ -11,6 +11,7 @@
 Run:  python benchmarks/bench_pipeline_run.py [--cores 2] [--samples 200,2000,10000]
 It prints tables; it never fails on time.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -86,12 +87,21 @@ def main() -> None:
             print(f"{stage:<22}{s:>22.2f}")
 
         print("\nInversion + adhesion range only, against the ground truth (Dugdale law):")
-        print(f"{'mode':<7}{'MC':>7}{'time [s]':>10}  " + "  ".join(f"{t + ' h err %':>18}{'W err %':>9}{'in CI':>6}" for t in truths))
+        print(
+            f"{'mode':<7}{'MC':>7}{'time [s]':>10}  "
+            + "  ".join(f"{t + ' h err %':>18}{'W err %':>9}{'in CI':>6}" for t in truths)
+        )
         for mode in ("auto", "mdn", "rigid"):
             for samples in [int(s) for s in args.samples.split(",")]:
                 res = Path(tmp) / f"{mode}_{samples}"
-                shutil.copytree(base, res, ignore=shutil.ignore_patterns("inversion.h5", "adhesion_range.h5", "summary.csv", "*_report.csv"))
-                dt = run_snakemake(res, args.cores, {"solver_mode": mode, "monte_carlo": {"samples": samples, "seed": 1}})
+                shutil.copytree(
+                    base,
+                    res,
+                    ignore=shutil.ignore_patterns("inversion.h5", "adhesion_range.h5", "summary.csv", "*_report.csv"),
+                )
+                dt = run_snakemake(
+                    res, args.cores, {"solver_mode": mode, "monte_carlo": {"samples": samples, "seed": 1}}
+                )
                 rows = {(r["tip"], r["law"]): r for r in summary_rows(res)}
                 cells = []
                 for tip, truth in truths.items():
@@ -102,7 +112,9 @@ def main() -> None:
                     h, lo, hi = float(r["h_nm"]), float(r["h_low_nm"]), float(r["h_high_nm"])
                     h_true = truth["h_m"] * 1e9
                     w_err = 100 * (float(r["W_A_mJ_per_m2"]) / (truth["W_A_J_per_m2"] * 1e3) - 1)
-                    cells.append(f"{100 * (h / h_true - 1):>18.2f}{w_err:>9.2f}{('yes' if lo <= h_true <= hi else 'NO'):>6}")
+                    cells.append(
+                        f"{100 * (h / h_true - 1):>18.2f}{w_err:>9.2f}{('yes' if lo <= h_true <= hi else 'NO'):>6}"
+                    )
                 print(f"{mode:<7}{samples:>7}{dt:>10.2f}  " + "  ".join(cells))
 
 

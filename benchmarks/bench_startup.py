@@ -9,6 +9,7 @@ imported at all.
 
 Usage: python benchmarks/bench_startup.py [repeats, default 5]
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -53,20 +54,24 @@ def import_profile(module: str):
     ``-X importtime`` prints a module after the modules it imported, indented by its depth; a
     line whose importer (the next line up the tree) belongs to another package starts that
     package's import, and its cumulative time is charged to the package."""
-    err = subprocess.run([sys.executable, "-X", "importtime", "-c", f"import pipeline.cli, {module}"],
-                         check=True, capture_output=True, text=True).stderr
+    err = subprocess.run(
+        [sys.executable, "-X", "importtime", "-c", f"import pipeline.cli, {module}"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stderr
     rows = []
     for line in err.splitlines():
         if not line.startswith("import time:") or line.count("|") != 2:
             continue
-        _, c, raw = line[len("import time:"):].split("|")
+        _, c, raw = line[len("import time:") :].split("|")
         if not c.strip().isdigit():
             continue
         name = raw[1:]
         rows.append(((len(name) - len(name.lstrip())) // 2, name.strip(), int(c) * 1e-6))
     cum, seen = {}, {n for _, n, _ in rows if n in WATCH}
     for i, (depth, name, c) in enumerate(rows):
-        parent = next((r for r in rows[i + 1:] if r[0] < depth), None)
+        parent = next((r for r in rows[i + 1 :] if r[0] < depth), None)
         top = name.split(".")[0]
         if top != "pipeline" and (parent is None or parent[1].split(".")[0] != top):
             cum[top] = cum.get(top, 0.0) + c

@@ -20,6 +20,7 @@ max |dn|, rigid Dugdale pull-off (Eq. 12, h = 1-6 nm) within 3 %, n within its r
 silhouette: the floor a perfect edge would reach), and the median times (s) of the
 simulation and of the stage.  Never fails on time or error.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -84,21 +85,49 @@ def run_one(args):
     g = evaluate_file(path, truth, pixel_size=p.pixel_size if fmt == "png" else None, figure=fig)
     os.remove(path)
     apex_parts = [q for q in truth["particles"] if q["kind"] == "apex"]
-    row = dict(i=i, seed=p.seed, n=p.n, R_nm=p.R * 1e9, S=p.S, layer=p.layer, layer_nm=p.layer_thickness * 1e9,
-               layer_contrast=truth["layer_contrast"], asymmetry=p.asymmetry, apex_particles=len(apex_parts),
-               particle_flank=truth["particle_flank"] or "",
-               lowest_particle_nm=min((q["height"] for q in apex_parts), default=np.nan) * 1e9,
-               particle_protrusion_nm=max((q["protrusion"] for q in apex_parts), default=np.nan) * 1e9,
-               shank_blobs=len(truth["particles"]) - len(apex_parts), kv=p.kv, defocus_um=p.defocus * 1e6,
-               fringe_nm=truth["optics"]["fringe_width"] * 1e9, cs_mm=p.cs * 1e3, aperture_mrad=p.aperture * 1e3,
-               pixel_nm=p.pixel_size * 1e9, side_px=p.shape[0], snr=p.snr, bits=p.bits, file=fmt,
-               saturated=truth["saturated_fraction"] > 0.01, rotation_deg=p.rotation_deg, orientation=p.orientation,
-               t_sim_s=t_sim)
+    row = dict(
+        i=i,
+        seed=p.seed,
+        n=p.n,
+        R_nm=p.R * 1e9,
+        S=p.S,
+        layer=p.layer,
+        layer_nm=p.layer_thickness * 1e9,
+        layer_contrast=truth["layer_contrast"],
+        asymmetry=p.asymmetry,
+        apex_particles=len(apex_parts),
+        particle_flank=truth["particle_flank"] or "",
+        lowest_particle_nm=min((q["height"] for q in apex_parts), default=np.nan) * 1e9,
+        particle_protrusion_nm=max((q["protrusion"] for q in apex_parts), default=np.nan) * 1e9,
+        shank_blobs=len(truth["particles"]) - len(apex_parts),
+        kv=p.kv,
+        defocus_um=p.defocus * 1e6,
+        fringe_nm=truth["optics"]["fringe_width"] * 1e9,
+        cs_mm=p.cs * 1e3,
+        aperture_mrad=p.aperture * 1e3,
+        pixel_nm=p.pixel_size * 1e9,
+        side_px=p.shape[0],
+        snr=p.snr,
+        bits=p.bits,
+        file=fmt,
+        saturated=truth["saturated_fraction"] > 0.01,
+        rotation_deg=p.rotation_deg,
+        orientation=p.orientation,
+        t_sim_s=t_sim,
+    )
     for k, v in g.items():
         if k in ("fit_flags", "edge_flags"):
             v = ";".join(v)
-        elif k in ("edge_rms", "edge_rms_left", "edge_rms_right", "edge_bias", "edge_max", "apex_error", "apex_dz",
-                   "coating_found"):
+        elif k in (
+            "edge_rms",
+            "edge_rms_left",
+            "edge_rms_right",
+            "edge_bias",
+            "edge_max",
+            "apex_error",
+            "apex_dz",
+            "coating_found",
+        ):
             k, v = k + "_nm", v * 1e9
         row[k] = v
     return row
@@ -148,19 +177,26 @@ def summary_row(rows):
     out = dict(N=len(rows), lost=lost)
     if used:
         e, dn, fp = arr("edge_rms_nm"), np.abs(arr("dn")), arr("pulloff_error")
-        out.update(edge_med=np.nanmedian(e), edge_max=np.nanmax(e), dn01=np.mean(dn <= 0.1), dn_max=np.max(dn),
-                   fp3=np.mean(fp <= 0.03), cov_n=np.mean([r["n_covered"] for r in used]),
-                   cov_fp=np.mean([r["pulloff_covered"] for r in used]),
-                   dn_ideal=np.median(np.abs(arr("dn_ideal"))))
-    out.update(t_sim=np.median([r["t_sim_s"] for r in rows]),
-               t_stage=np.median([r["t_stage"] for r in rows]))
+        out.update(
+            edge_med=np.nanmedian(e),
+            edge_max=np.nanmax(e),
+            dn01=np.mean(dn <= 0.1),
+            dn_max=np.max(dn),
+            fp3=np.mean(fp <= 0.03),
+            cov_n=np.mean([r["n_covered"] for r in used]),
+            cov_fp=np.mean([r["pulloff_covered"] for r in used]),
+            dn_ideal=np.median(np.abs(arr("dn_ideal"))),
+        )
+    out.update(t_sim=np.median([r["t_sim_s"] for r in rows]), t_stage=np.median([r["t_stage"] for r in rows]))
     return out
 
 
 def print_table(rows):
-    hdr = (f"{'category':<26} {'N':>4} {'lost':>4} | {'edge med':>8} {'edge max':>8} | {'|dn|<=.1':>8} "
-           f"{'max|dn|':>7} | {'dF<=3%':>6} | {'n cov':>5} {'F cov':>5} | {'|dn| ideal':>10} | "
-           f"{'t sim':>5} {'t stage':>7}")
+    hdr = (
+        f"{'category':<26} {'N':>4} {'lost':>4} | {'edge med':>8} {'edge max':>8} | {'|dn|<=.1':>8} "
+        f"{'max|dn|':>7} | {'dF<=3%':>6} | {'n cov':>5} {'F cov':>5} | {'|dn| ideal':>10} | "
+        f"{'t sim':>5} {'t stage':>7}"
+    )
     print(hdr)
     print("-" * len(hdr))
     for label, pred in categories():
@@ -169,9 +205,11 @@ def print_table(rows):
             continue
         s = summary_row(sel)
         if "edge_med" in s:
-            print(f"{label:<26} {s['N']:>4} {s['lost']:>4} | {s['edge_med']:8.3f} {s['edge_max']:8.2f} | "
-                  f"{s['dn01']:8.0%} {s['dn_max']:7.2f} | {s['fp3']:6.0%} | {s['cov_n']:5.0%} {s['cov_fp']:5.0%} | "
-                  f"{s['dn_ideal']:10.3f} | {s['t_sim']:5.2f} {s['t_stage']:7.2f}")
+            print(
+                f"{label:<26} {s['N']:>4} {s['lost']:>4} | {s['edge_med']:8.3f} {s['edge_max']:8.2f} | "
+                f"{s['dn01']:8.0%} {s['dn_max']:7.2f} | {s['fp3']:6.0%} | {s['cov_n']:5.0%} {s['cov_fp']:5.0%} | "
+                f"{s['dn_ideal']:10.3f} | {s['t_sim']:5.2f} {s['t_stage']:7.2f}"
+            )
         else:
             print(f"{label:<26} {s['N']:>4} {s['lost']:>4} | (all lost)")
     print("\nlight-layer decision of the edge model (coated = layer found, ambiguous = flagged, single = neither):")
@@ -180,8 +218,11 @@ def print_table(rows):
         c = collections.Counter(("ambiguous" if r["coating_ambiguous"] else r["coating_model"] or "-") for r in sel)
         found = [r for r in sel if r["coating_model"] == "coated"]
         dt = np.median([r["coating_found_nm"] - r["layer_nm"] for r in found]) if found else np.nan
-        print(f"  true {layer:<6} {len(sel):3d}: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items()))
-              + (f"; found layer - true layer median {dt:+.2f} nm" if found and layer != "none" else ""))
+        print(
+            f"  true {layer:<6} {len(sel):3d}: "
+            + ", ".join(f"{k} {v}" for k, v in sorted(c.items()))
+            + (f"; found layer - true layer median {dt:+.2f} nm" if found and layer != "none" else "")
+        )
     reasons = collections.Counter(r["lost_reason"].split(" (")[0][:110] for r in rows if r["lost"])
     if reasons:
         print("\nintervals lost, by reason:")
@@ -197,11 +238,19 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (one thread each)")
     ap.add_argument("--csv", default=None, help="write one row per image to this CSV")
     ap.add_argument("--verbose", action="store_true", help="print one row per image")
-    ap.add_argument("--figures", default=None, metavar="DIR",
-                    help="save per image a PNG of the apex with the true and the extracted edge")
-    ap.add_argument("--fix", action="append", metavar="KEY=VALUE",
-                    help="hold a draw_params keyword for every image (repeatable), e.g. --fix defocus=0 "
-                         "--fix layer=none --fix apex_particles=False (SI units)")
+    ap.add_argument(
+        "--figures",
+        default=None,
+        metavar="DIR",
+        help="save per image a PNG of the apex with the true and the extracted edge",
+    )
+    ap.add_argument(
+        "--fix",
+        action="append",
+        metavar="KEY=VALUE",
+        help="hold a draw_params keyword for every image (repeatable), e.g. --fix defocus=0 "
+        "--fix layer=none --fix apex_particles=False (SI units)",
+    )
     a = ap.parse_args(argv)
     n = 12 if a.quick else a.n
     t0 = time.perf_counter()
@@ -225,18 +274,22 @@ def main(argv=None):
                 rows.append(r)
                 _progress(r, a.verbose)
     wall = time.perf_counter() - t0
-    print(f"\n{n} independent-simulator images through the current TEM stage + stage 2 "
-          f"(wall {wall:.0f} s on {a.jobs} process(es)){'; held: ' + ', '.join(a.fix) if a.fix else ''}\n")
+    print(
+        f"\n{n} independent-simulator images through the current TEM stage + stage 2 "
+        f"(wall {wall:.0f} s on {a.jobs} process(es)){'; held: ' + ', '.join(a.fix) if a.fix else ''}\n"
+    )
     print_table(rows)
     used = [r for r in rows if not r["lost"]]
     if used:
         bad = sorted(used, key=lambda r: -abs(r["dn"]))[:8]
         print("\nlargest |dn| among used intervals:")
         for r in bad:
-            print(f"  image {r['i']:3d}: n {r['n']:.2f} dn {r['dn']:+.2f} (sigma_n {r['sigma_n']:.2f}, ideal "
-                  f"{r['dn_ideal']:+.2f}) edge {r['edge_rms_nm']:.2f} nm, {r['layer']} {r['layer_nm']:.1f} nm, "
-                  f"e {r['asymmetry']:+.3f}, particles {r['apex_particles']}, df {r['defocus_um']:+.2f} um, "
-                  f"px {r['pixel_nm']:.2f}, SNR {r['snr']:.0f}, coating model {r['coating_model'] or '-'}")
+            print(
+                f"  image {r['i']:3d}: n {r['n']:.2f} dn {r['dn']:+.2f} (sigma_n {r['sigma_n']:.2f}, ideal "
+                f"{r['dn_ideal']:+.2f}) edge {r['edge_rms_nm']:.2f} nm, {r['layer']} {r['layer_nm']:.1f} nm, "
+                f"e {r['asymmetry']:+.3f}, particles {r['apex_particles']}, df {r['defocus_um']:+.2f} um, "
+                f"px {r['pixel_nm']:.2f}, SNR {r['snr']:.0f}, coating model {r['coating_model'] or '-'}"
+            )
     if a.csv:
         keys = list(dict.fromkeys(k for r in rows for k in r))
         with open(a.csv, "w", newline="") as fh:
@@ -251,9 +304,11 @@ def _progress(r, verbose):
         if r["lost"]:
             print(f"  {r['i']:4d} LOST {r['lost_reason'][:100]}", flush=True)
         else:
-            print(f"  {r['i']:4d} n {r['n']:.2f} dn {r['dn']:+.3f} sn {r['sigma_n']:.3f} edge {r['edge_rms_nm']:.3f} "
-                  f"nm dF {100 * r['pulloff_error']:.1f} % {r['layer']} t {r['t_sim_s']:.1f}+{r['t_stage']:.1f} s",
-                  flush=True)
+            print(
+                f"  {r['i']:4d} n {r['n']:.2f} dn {r['dn']:+.3f} sn {r['sigma_n']:.3f} edge {r['edge_rms_nm']:.3f} "
+                f"nm dF {100 * r['pulloff_error']:.1f} % {r['layer']} t {r['t_sim_s']:.1f}+{r['t_stage']:.1f} s",
+                flush=True,
+            )
     else:
         print(".", end="", flush=True, file=sys.stderr)
 

@@ -18,6 +18,7 @@ Each stage loads and validates the tip YAML (units -> SI), then calls one functi
 science package.  Errors print one line naming the file and the reason and exit with
 status 1.  `python -m pipeline <command> --help` lists a command's options.
 """  # noqa: E501 (the usage lines are the --help text)
+
 from __future__ import annotations
 
 import argparse
@@ -41,10 +42,16 @@ def cmd_profiles(a):
     tip = load_tip_config(a.tip_config)
     iv = _interval(tip, a.interval)
     run_profiles(
-        iv["image_path"], a.out_h5, a.out_png,
-        pixel_size=tip["tem"].get("pixel_size"), orientation=tip["tem"]["orientation"],
-        profile_height=tip["tem"]["profile_height"], coating=tip["tem"]["coating"], refine=tip["tem"]["refine"],
-        tip=tip["name"], interval=iv["name"],
+        iv["image_path"],
+        a.out_h5,
+        a.out_png,
+        pixel_size=tip["tem"].get("pixel_size"),
+        orientation=tip["tem"]["orientation"],
+        profile_height=tip["tem"]["profile_height"],
+        coating=tip["tem"]["coating"],
+        refine=tip["tem"]["refine"],
+        tip=tip["name"],
+        interval=iv["name"],
     )
 
 
@@ -54,7 +61,14 @@ def cmd_fit(a):
 
     tip = load_tip_config(a.tip_config)
     iv = _interval(tip, a.interval)
-    run_fit(a.profile_h5, a.out_h5, fit_height=tip["tem"]["fit_height"], S=tip["tem"]["S"], tip=tip["name"], interval=iv["name"])
+    run_fit(
+        a.profile_h5,
+        a.out_h5,
+        fit_height=tip["tem"]["fit_height"],
+        S=tip["tem"]["S"],
+        tip=tip["name"],
+        interval=iv["name"],
+    )
 
 
 def cmd_fit_figure(a):
@@ -70,8 +84,14 @@ def cmd_forces(a):
     tip = load_tip_config(a.tip_config)
     iv = _interval(tip, a.interval)
     run_forces(
-        [str(p) for p in iv["curve_paths"]], a.out_h5, a.out_png,
-        cantilever=tip["cantilever"], reader=tip["force_curves"], tip=tip["name"], interval=iv["name"], interval_cfg=iv,
+        [str(p) for p in iv["curve_paths"]],
+        a.out_h5,
+        a.out_png,
+        cantilever=tip["cantilever"],
+        reader=tip["force_curves"],
+        tip=tip["name"],
+        interval=iv["name"],
+        interval_cfg=iv,
     )
 
 
@@ -87,7 +107,10 @@ def cmd_inversion(a):
         {n: str(Path(a.forces) / f"{n}.h5") for n in names},
         a.out_h5,
         intervals=[{"name": iv["name"], "scans": iv["scans"], "reference": iv["reference"]} for iv in tip["intervals"]],
-        E_star=tip["materials"]["E_star"], u_E_star=tip["materials"]["u_E_star"], tip=tip["name"], **settings,
+        E_star=tip["materials"]["E_star"],
+        u_E_star=tip["materials"]["u_E_star"],
+        tip=tip["name"],
+        **settings,
     )
 
 
@@ -168,14 +191,20 @@ def cmd_unlock_stale(a):
     if message:
         print(f"{message}{'; unlocking it' if state == 'stale' else ''}", file=sys.stderr)
     if state == "stale":
-        proc = subprocess.run([sys.executable, "-m", "snakemake", "--unlock", "--cores", "1"],
-                              cwd=a.directory, capture_output=True, text=True)
+        proc = subprocess.run(
+            [sys.executable, "-m", "snakemake", "--unlock", "--cores", "1"],
+            cwd=a.directory,
+            capture_output=True,
+            text=True,
+        )
         if proc.returncode != 0:
             raise RuntimeError(f"snakemake --unlock in {a.directory} failed: {proc.stderr.strip().splitlines()[-1:]}")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = p.add_subparsers(dest="cmd", required=True, metavar="<command>")
     _add_job_commands(sub)
     _add_tool_commands(sub)
@@ -212,9 +241,12 @@ def _add_job_commands(sub):
     s.add_argument("--out-png", required=True, help="figure: retract curves, baselines and pull-offs")
 
     s = _command(sub, "inversion", cmd_inversion)
-    s.add_argument("--workflow-config", default="config/config.yaml",
-                   help="the workflow config whose h_grid, traction_laws, solver_mode and monte_carlo (samples, seed) "
-                        "the inversion uses (default: config/config.yaml)")
+    s.add_argument(
+        "--workflow-config",
+        default="config/config.yaml",
+        help="the workflow config whose h_grid, traction_laws, solver_mode and monte_carlo (samples, seed) "
+        "the inversion uses (default: config/config.yaml)",
+    )
     s.add_argument("--fits", required=True, help="folder of per-interval fit HDF5 files")
     s.add_argument("--forces", required=True, help="folder of per-interval forces HDF5 files")
     s.add_argument("--out-h5", required=True, help="inversion HDF5 to write")
@@ -242,7 +274,9 @@ def _add_job_commands(sub):
 def _add_tool_commands(sub):
     """The commands run by hand (figures of the mechanics, checks, samples, the lock)."""
     s = _command(sub, "mechanics-figure", cmd_mechanics_figure, tip=False)
-    s.add_argument("--out", required=True, help="PNG: pull-off vs h for the four laws, elastic and rigid (paper Fig. 7)")
+    s.add_argument(
+        "--out", required=True, help="PNG: pull-off vs h for the four laws, elastic and rigid (paper Fig. 7)"
+    )
     s.add_argument("--n", default="2,5", help="comma-separated power indices (default 2,5)")
     s.add_argument("--fast", action="store_true", help="elastic values from the table instead of direct solves")
 

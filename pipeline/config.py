@@ -6,6 +6,7 @@ custom keyword ``x-unit`` are quantity strings ("150 GPa"); they are converted
 to SI floats here, with pint checking the dimension.  Every error names the
 file and the key, and what was expected.
 """
+
 from __future__ import annotations
 
 import copy
@@ -24,8 +25,20 @@ TIP_SCHEMA = SCHEMA_DIR / "tip.schema.yaml"
 WORKFLOW_SCHEMA = SCHEMA_DIR / "config.schema.yaml"
 
 # Files accepted as force curves when an interval's `curves` names a folder.
-CURVE_SUFFIXES = (".csv", ".tsv", ".txt", ".dat", ".tab", ".jpk-force", ".jpk-force-map", ".jpk-qi-data", ".jpk-qi-series",
-                  ".ibw", ".h5", ".zip")
+CURVE_SUFFIXES = (
+    ".csv",
+    ".tsv",
+    ".txt",
+    ".dat",
+    ".tab",
+    ".jpk-force",
+    ".jpk-force-map",
+    ".jpk-qi-data",
+    ".jpk-qi-series",
+    ".ibw",
+    ".h5",
+    ".zip",
+)
 
 
 class ConfigError(ValueError):
@@ -47,8 +60,10 @@ def load_yaml(path) -> dict:
     except UnicodeDecodeError as exc:
         raw = path.read_bytes()
         line = raw[: exc.start].count(b"\n") + 1
-        raise ConfigError(f"{path}: line {line}: byte 0x{raw[exc.start]:02x} is not UTF-8 (a Latin-1 'µ' or '°'?): save the "
-                          "file as UTF-8, or write the unit in ASCII ('um', 'deg')") from None
+        raise ConfigError(
+            f"{path}: line {line}: byte 0x{raw[exc.start]:02x} is not UTF-8 (a Latin-1 'µ' or '°'?): save the "
+            "file as UTF-8, or write the unit in ASCII ('um', 'deg')"
+        ) from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(data, dict):
@@ -97,7 +112,10 @@ def _error_message(err: jsonschema.ValidationError, root: dict) -> str:
     schema = _schema_at(root, err.absolute_path)
     if err.validator == "type" and "x-unit" in schema:
         kind = schema["x-unit"].replace("_", " ")
-        return (f"{where}: {err.instance!r} has no unit; write a {kind} with its " f"unit, e.g. '{err.instance} {example_unit(schema['x-unit'])}'")
+        return (
+            f"{where}: {err.instance!r} has no unit; write a {kind} with its "
+            f"unit, e.g. '{err.instance} {example_unit(schema['x-unit'])}'"
+        )
     if err.validator == "pattern" and "x-unit" in schema:
         return f"{where}: {err.instance!r} is not '<number> <unit>' (a {schema['x-unit'].replace('_', ' ')})"
     if err.validator == "additionalProperties":
@@ -193,8 +211,9 @@ def load_workflow_config(config) -> dict:
         raise ConfigError(f"{source}: h_grid: need 0 < min < max, got min={g['min']:g} m, max={g['max']:g} m")
     rd = Path(str(cfg.get("results_dir", "results")))
     if rd.exists() and not rd.is_dir():
-        raise ConfigError(f"{source}: results_dir: {str(rd)!r} is an existing file, not a folder; name a folder (or "
-                          "remove the file)")
+        raise ConfigError(
+            f"{source}: results_dir: {str(rd)!r} is an existing file, not a folder; name a folder (or remove the file)"
+        )
     return cfg
 
 
@@ -213,8 +232,13 @@ INVERSION_KEYS = ("h_grid", "traction_laws", "solver_mode", "monte_carlo")
 def inversion_settings(cfg: dict) -> dict:
     """``run_inversion``'s keyword arguments from a validated workflow config: the h grid (m), the
     traction laws, the solver mode, the Monte Carlo size and its seed."""
-    return {"h_grid": h_grid(cfg), "laws": list(cfg["traction_laws"]), "solver_mode": cfg["solver_mode"],
-            "mc_samples": cfg["monte_carlo"]["samples"], "seed": cfg["monte_carlo"]["seed"]}
+    return {
+        "h_grid": h_grid(cfg),
+        "laws": list(cfg["traction_laws"]),
+        "solver_mode": cfg["solver_mode"],
+        "mc_samples": cfg["monte_carlo"]["samples"],
+        "seed": cfg["monte_carlo"]["seed"],
+    }
 
 
 # --------------------------------------------------------------------------- tips
@@ -274,8 +298,10 @@ def _resolve_materials(mat: dict, path) -> None:
     if not (math.isfinite(mat["E_star"]) and mat["E_star"] > 0):
         raise ConfigError(f"{path}: materials: E* must be positive, got {mat['E_star']:g} Pa")
     if mat["u_E_star"] >= mat["E_star"]:
-        raise ConfigError(f"{path}: materials.E_star_uncertainty ({mat['u_E_star'] * 1e-9:.3g} GPa) is not smaller than "
-                          f"E* ({mat['E_star'] * 1e-9:.3g} GPa)")
+        raise ConfigError(
+            f"{path}: materials.E_star_uncertainty ({mat['u_E_star'] * 1e-9:.3g} GPa) is not smaller than "
+            f"E* ({mat['E_star'] * 1e-9:.3g} GPa)"
+        )
 
 
 def _check_intervals(tip: dict, path) -> None:
@@ -288,7 +314,10 @@ def _check_intervals(tip: dict, path) -> None:
         if ref not in names:
             raise ConfigError(f"{path}: reference_intervals[{i}]: {ref!r} is not an interval name (have {names})")
     if len(set(tip["reference_intervals"])) == len(names):
-        raise ConfigError(f"{path}: reference_intervals: every interval is a " "reference; at least one worn interval is needed to find h")
+        raise ConfigError(
+            f"{path}: reference_intervals: every interval is a "
+            "reference; at least one worn interval is needed to find h"
+        )
 
 
 def _resolve_interval(iv: dict, i: int, tip: dict, data_dir: Path, path, check_files: bool) -> None:
@@ -307,17 +336,32 @@ def _resolve_interval(iv: dict, i: int, tip: dict, data_dir: Path, path, check_f
     if "calibration_curves" in iv:
         iv["calibration_paths"] = list_curve_files(iv["calibration_curves"], data_dir) if data_dir.is_dir() else []
         if check_files and not iv["calibration_paths"]:
-            raise ConfigError(f"{path}: intervals[{i}].calibration_curves: no force-curve files found at "
-                              f"{str(data_dir / iv['calibration_curves'])!r}")
+            raise ConfigError(
+                f"{path}: intervals[{i}].calibration_curves: no force-curve files found at "
+                f"{str(data_dir / iv['calibration_curves'])!r}"
+            )
     if iv.get("deflection_sensitivity_uncertainty") is not None and "deflection_sensitivity" not in iv:
-        raise ConfigError(f"{path}: intervals[{i}].deflection_sensitivity_uncertainty is given without "
-                          "deflection_sensitivity")
+        raise ConfigError(
+            f"{path}: intervals[{i}].deflection_sensitivity_uncertainty is given without deflection_sensitivity"
+        )
 
 
 # quantities that must be positive (by key, wherever they stand in a tip YAML); every
 # ``*_uncertainty`` must be >= 0
-POSITIVE_KEYS = {"E", "E_star", "spring_constant", "deflection_sensitivity", "pixel_size", "fit_height",
-                 "profile_height", "length", "temperature", "frequency_min", "frequency_max", "coating_thickness"}
+POSITIVE_KEYS = {
+    "E",
+    "E_star",
+    "spring_constant",
+    "deflection_sensitivity",
+    "pixel_size",
+    "fit_height",
+    "profile_height",
+    "length",
+    "temperature",
+    "frequency_min",
+    "frequency_max",
+    "coating_thickness",
+}
 
 
 def _walk(node, path=()):
@@ -346,8 +390,10 @@ def _check_physical(tip: dict, source) -> None:
             problems.append(f"{_key_path(path)}: Poisson's ratio must lie in (-1, 0.5], got {v:g}")
     tem = tip.get("tem", {})
     if tem.get("profile_height", np.inf) < tem.get("fit_height", 0):
-        problems.append(f"tem.profile_height ({tem['profile_height'] * 1e9:.3g} nm) is below tem.fit_height "
-                        f"({tem['fit_height'] * 1e9:.3g} nm): the fit window needs a profile at least that high")
+        problems.append(
+            f"tem.profile_height ({tem['profile_height'] * 1e9:.3g} nm) is below tem.fit_height "
+            f"({tem['fit_height'] * 1e9:.3g} nm): the fit window needs a profile at least that high"
+        )
     if problems:
         raise ConfigError(f"{source}: invalid configuration:\n  - " + "\n  - ".join(problems))
 

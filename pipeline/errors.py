@@ -1,4 +1,5 @@
 """Errors shared by the stages: every message names the file it is about."""
+
 from __future__ import annotations
 
 

@@ -5,6 +5,7 @@ that looks complete).
 Light NeXus conventions (``NX_class`` on groups, ``units`` on datasets) help stock
 viewers such as h5web or nexpy.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -140,7 +141,9 @@ def read_dataset(group, name: str):
     if isinstance(data, bytes):
         data = data.decode()
     elif isinstance(data, np.ndarray) and data.dtype.kind == "O":
-        data = np.array([d.decode() if isinstance(d, bytes) else d for d in data.ravel()], dtype=object).reshape(data.shape)
+        data = np.array([d.decode() if isinstance(d, bytes) else d for d in data.ravel()], dtype=object).reshape(
+            data.shape
+        )
     return data, ds.attrs.get("units", None)
 
 

@@ -1,6 +1,7 @@
 """What the stages' figures share: matplotlib without a display (``plt`` is pyplot on the Agg
 backend), log axes labelled with plain numbers, and PNG files written atomically.  Only figure
 modules import this (it loads matplotlib)."""
+
 from __future__ import annotations
 
 import matplotlib

@@ -3,6 +3,7 @@
 Pint does the parsing and dimension checking; inside the package every value is a
 plain float in SI base units (m, kg, s, N, Pa, J/m^2, V, K, rad).
 """
+
 from __future__ import annotations
 
 import functools
@@ -61,7 +62,10 @@ def parse_quantity(text, kind: str, where: str = "") -> float:
         if kind == "angle":
             raise QuantityError(f"{loc}angle needs a unit ('deg' or 'rad'), got bare number {text!r}")
         unit = example_unit(kind)
-        raise QuantityError(f"{loc}bare number {text!r} has no unit; write it with a " f"unit of {kind.replace('_', ' ')}, e.g. '{text} {unit}'")
+        raise QuantityError(
+            f"{loc}bare number {text!r} has no unit; write it with a "
+            f"unit of {kind.replace('_', ' ')}, e.g. '{text} {unit}'"
+        )
     m = _NUMBER_UNIT.match(text)
     if not m or not m.group(4):
         raise QuantityError(f"{loc}{text!r} is not '<number> <unit>' (e.g. '{_example(kind)}')")

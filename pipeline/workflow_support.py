@@ -1,4 +1,5 @@
 """Small helpers for the Snakemake layer (no science here)."""
+
 from __future__ import annotations
 
 import json
@@ -37,8 +38,10 @@ def config_file_for_jobs(configfiles, workflow_config: dict, keys) -> str:
         if {k: cfg[k] for k in keys} == want:
             rel = os.path.relpath(os.path.abspath(path))
             return os.path.abspath(path) if rel.startswith(os.pardir) else rel
-    raise ConfigError(f"{', '.join(map(str, configfiles)) or 'no config file'}: {', '.join(keys)} must be set in one "
-                      "config file (not with --config, not spread over several --configfile): the jobs read them from it")
+    raise ConfigError(
+        f"{', '.join(map(str, configfiles)) or 'no config file'}: {', '.join(keys)} must be set in one "
+        "config file (not with --config, not spread over several --configfile): the jobs read them from it"
+    )
 
 
 # --- failed cluster jobs ------------------------------------------------------------------------
@@ -132,9 +135,9 @@ def failure_reason(log_path, *, since: float | None = None) -> list[str] | None:
     except OSError:
         return None
     starts = [i for i, ln in enumerate(lines) if ln.startswith("error (")]
-    block = lines[starts[-1]:] if starts else lines[-1:]
+    block = lines[starts[-1] :] if starts else lines[-1:]
     if len(block) > MAX_REASON_LINES:
-        block = block[:MAX_REASON_LINES - 1] + [f"... ({len(block) - MAX_REASON_LINES + 1} more lines in the log)"]
+        block = block[: MAX_REASON_LINES - 1] + [f"... ({len(block) - MAX_REASON_LINES + 1} more lines in the log)"]
     return block
 
 
@@ -144,7 +147,7 @@ def failed_jobs_of(workflow) -> list[FailedJob]:
     failed = getattr(getattr(workflow, "scheduler", None), "failed", None) or ()
     jobs = []
     for job in failed:
-        for j in (job.jobs if job.is_group() else [job]):
+        for j in job.jobs if job.is_group() else [job]:
             jobs.append(FailedJob(j.rule.name, dict(j.wildcards.items()), tuple(str(p) for p in j.log)))
     return sorted(jobs, key=lambda j: (j.rule, sorted(j.wildcards.items())))
 
@@ -181,8 +184,10 @@ def write_partial_summary(summary_csv, range_h5s: dict, failed: dict) -> list[st
     before = (min(inputs) if inputs else time.time()) - 1.0
     os.utime(summary_csv, (before, before))
     done = ", ".join(range_h5s) or "none"
-    return [f"{summary_csv} written for the tips that finished ({done}); "
-            f"without a result: {', '.join(failed)} (their rows say why). The next run rewrites it."]
+    return [
+        f"{summary_csv} written for the tips that finished ({done}); "
+        f"without a result: {', '.join(failed)} (their rows say why). The next run rewrites it."
+    ]
 
 
 def tips_without_result(jobs, tips, range_h5_of, *, since: float | None = None) -> dict:
@@ -220,9 +225,13 @@ def report_failed_run(workflow, log, *, results: str, tips) -> None:
     if not summary_waits or any(j.rule == "summary" for j in jobs):
         return
     if not getattr(getattr(workflow, "execution_settings", None), "keep_going", False):
-        print(f"{summary_csv} not written (a file there is from an earlier run): run with --keep-going (-k; "
-              "`make run` does) to get the summary of the tips that finish", file=sys.stderr)
+        print(
+            f"{summary_csv} not written (a file there is from an earlier run): run with --keep-going (-k; "
+            "`make run` does) to get the summary of the tips that finish",
+            file=sys.stderr,
+        )
         return
+
     def range_h5_of(tip):
         return f"{results}/{tip}/adhesion_range.h5"
 
@@ -298,8 +307,11 @@ def _snakemake_processes_in(workdir) -> list[int]:
     for proc in psutil.process_iter(["pid", "cmdline"]):
         try:
             cmd = proc.info["cmdline"] or []
-            if proc.pid != os.getpid() and any(os.path.basename(a) == "snakemake" for a in cmd[:3]) \
-                    and os.path.realpath(proc.cwd()) == here:
+            if (
+                proc.pid != os.getpid()
+                and any(os.path.basename(a) == "snakemake" for a in cmd[:3])
+                and os.path.realpath(proc.cwd()) == here
+            ):
                 pids.append(proc.pid)
         except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
             continue
@@ -334,7 +346,10 @@ def stale_lock(workdir=".") -> tuple[str, str]:
     live = [rec for _, rec, alive in state if alive]
     if live:
         rec = live[0]
-        return "live", f"a Snakemake run (pid {rec['pid']}, started {_when(rec['started'])}) holds the lock of this folder"
+        return (
+            "live",
+            f"a Snakemake run (pid {rec['pid']}, started {_when(rec['started'])}) holds the lock of this folder",
+        )
     elsewhere = [rec for _, rec, alive in state if alive is None]
     if elsewhere:
         rec = elsewhere[0]
@@ -342,10 +357,14 @@ def stale_lock(workdir=".") -> tuple[str, str]:
     pids = _snakemake_processes_in(workdir)
     if pids:
         return "live", f"Snakemake (pid {', '.join(map(str, pids))}) runs in this folder and holds its lock"
-    taken_by_dead = all(any(rec["create_time"] - 1.0 <= os.path.getmtime(lock) <= rec["started"] + 1.0 for rec in dead)
-                        for lock in locks)
+    taken_by_dead = all(
+        any(rec["create_time"] - 1.0 <= os.path.getmtime(lock) <= rec["started"] + 1.0 for rec in dead)
+        for lock in locks
+    )
     if not dead or not taken_by_dead:
         return "unknown", f"Snakemake's lock of this folder has no record of the run that took it; {unlock}"
     rec = dead[0]
-    return "stale", (f"the run that locked this folder (pid {rec['pid']}, started {_when(rec['started'])}) "
-                     "has ended without unlocking it (killed?)")
+    return "stale", (
+        f"the run that locked this folder (pid {rec['pid']}, started {_when(rec['started'])}) "
+        "has ended without unlocking it (killed?)"
+    )

@@ -6,6 +6,7 @@ Prints one line per package whose installed version differs from its pin (``nump
 2.5.0``), and the installed packages the lock does not have, so that a failing run against the
 newest releases names its suspects.  Always exits 0: the test run that follows is the verdict.
 """
+
 from __future__ import annotations
 
 import re
@@ -49,9 +50,14 @@ def pinned_here(pins: dict[str, list[dict]]) -> dict[str, str]:
 def drift(lock_path) -> list[str]:
     pinned = pinned_here(read_lock(lock_path))
     installed = {canonicalize_name(d.metadata["Name"]): d.version for d in metadata.distributions()}
-    lines = [f"{name} {pinned[name]} -> {v}" for name, v in sorted(installed.items()) if name in pinned and v != pinned[name]]
-    lines += [f"{name} {v} (not in the lock)" for name, v in sorted(installed.items())
-              if name not in pinned and name not in ("pip", "wear-adhesion-pipeline")]
+    lines = [
+        f"{name} {pinned[name]} -> {v}" for name, v in sorted(installed.items()) if name in pinned and v != pinned[name]
+    ]
+    lines += [
+        f"{name} {v} (not in the lock)"
+        for name, v in sorted(installed.items())
+        if name not in pinned and name not in ("pip", "wear-adhesion-pipeline")
+    ]
     lines += [f"{name} {v} pinned, not installed" for name, v in sorted(pinned.items()) if name not in installed]
     return lines
 

@@ -23,6 +23,7 @@ turned into SLURM requests with a safety margin:
 A group job (profiles/slurm groups the jobs of a tip) runs its jobs one after another and asks
 for the sum of their runtimes and the largest of their memory requests (Snakemake computes it).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -80,8 +81,10 @@ def resources(st: dict[str, float]) -> dict[str, int]:
 def read_table(tsv: Path) -> dict[str, dict[str, float]]:
     """Statistics as written by ``--tsv`` (the profile keeps the ones its numbers came from)."""
     with open(tsv, newline="") as fh:
-        return {r["rule"]: {k: float(v) for k, v in r.items() if k != "rule"}
-                for r in csv.DictReader((line for line in fh if not line.startswith("#")), delimiter="\t")}
+        return {
+            r["rule"]: {k: float(v) for k, v in r.items() if k != "rule"}
+            for r in csv.DictReader((line for line in fh if not line.startswith("#")), delimiter="\t")
+        }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -96,11 +99,16 @@ def main(argv: list[str] | None = None) -> int:
         for rule, st in sorted(stats.items()):
             print(f"{rule}\t{st['jobs']:.0f}\t{st['s_max']:.2f}\t{st['max_rss_mb']:.1f}\t{st['load_max']:.2f}")
         return 0
-    print(f"{'rule':<20} {'jobs':>4} {'s_max':>7} {'rss_MB':>7} {'load':>5}  ->  runtime_min mem_mb cpus", file=sys.stderr)
+    print(
+        f"{'rule':<20} {'jobs':>4} {'s_max':>7} {'rss_MB':>7} {'load':>5}  ->  runtime_min mem_mb cpus", file=sys.stderr
+    )
     for rule, st in sorted(stats.items()):
         r = resources(st)
-        print(f"{rule:<20} {st['jobs']:>4.0f} {st['s_max']:>7.2f} {st['max_rss_mb']:>7.1f} {st['load_max']:>5.2f}"
-              f"  ->  {r['runtime']:>11} {r['mem_mb']:>6} {r['cpus_per_task']:>4}", file=sys.stderr)
+        print(
+            f"{rule:<20} {st['jobs']:>4.0f} {st['s_max']:>7.2f} {st['max_rss_mb']:>7.1f} {st['load_max']:>5.2f}"
+            f"  ->  {r['runtime']:>11} {r['mem_mb']:>6} {r['cpus_per_task']:>4}",
+            file=sys.stderr,
+        )
     print("set-resources:")
     for rule, st in sorted(stats.items()):
         r = resources(st)

@@ -54,8 +54,12 @@ def hat_influence(x):
             far = ~near
             K[far, j] += dx * ((g[far] * -np.log(np.abs(xi[far] - s[None, :]))) @ _GW)
             for i in np.nonzero(near)[0]:
-                gx = 4.0 / np.pi * (np.interp(x[i], [x[e], x[e + 1]], [1.0, 0.0] if j == e else [0.0, 1.0])) * (
-                    x[i] / (2.0 * x[i]) if x[i] > 0 else 1.0)
+                gx = (
+                    4.0
+                    / np.pi
+                    * (np.interp(x[i], [x[e], x[e + 1]], [1.0, 0.0] if j == e else [0.0, 1.0]))
+                    * (x[i] / (2.0 * x[i]) if x[i] > 0 else 1.0)
+                )
                 u = s - x[i]
                 with np.errstate(divide="ignore"):
                     sub = (g[i] - gx) * -np.log(np.abs(u))

@@ -5,6 +5,7 @@ Pull-off forces of the generated tests come from the exact M-D-n solve
 (pulloff_force(model="mdn", exact=True)); noise is added to the curves and to the fitted
 (n, ln R).
 """
+
 import numpy as np
 import pytest
 
@@ -21,18 +22,59 @@ from pipeline.synth.stage_inputs import write_synthetic_inputs
 NOISE = dict(sigma_n=0.01, sigma_lnR=0.005, rel_sd_curve=0.04, n_curves=64)
 
 
-def _case(tmp, *, W_A, h, E_star, R, ns, mode="auto", S=1.0, seed=1, hmin=0.2e-9, hmax=10e-9, H=80, mc=800,
-          laws=("dugdale",), extra=(), perturb=True, **kw):
+def _case(
+    tmp,
+    *,
+    W_A,
+    h,
+    E_star,
+    R,
+    ns,
+    mode="auto",
+    S=1.0,
+    seed=1,
+    hmin=0.2e-9,
+    hmax=10e-9,
+    H=80,
+    mc=800,
+    laws=("dugdale",),
+    extra=(),
+    perturb=True,
+    **kw,
+):
     ivs = [dict(name="s000", n=ns[0], R=R, S=S, reference=True)]
     ivs += [dict(name=f"s{20 * i:03d}", n=n, R=R, S=S) for i, n in enumerate(ns[1:], 1)]
     ivs += list(extra)
     noise = {**NOISE, **kw}
-    fits, forces, cfg = write_synthetic_inputs(tmp, W_A=W_A, h=h, E_star=E_star, intervals=ivs, seed=seed,
-                                               perturb=perturb, k=0.2, u_k=0.004, invols=50e-9, u_invols=0.5e-9, **noise)
+    fits, forces, cfg = write_synthetic_inputs(
+        tmp,
+        W_A=W_A,
+        h=h,
+        E_star=E_star,
+        intervals=ivs,
+        seed=seed,
+        perturb=perturb,
+        k=0.2,
+        u_k=0.004,
+        invols=50e-9,
+        u_invols=0.5e-9,
+        **noise,
+    )
     inv = tmp / "inversion.h5"
-    run_inversion(fits, forces, inv, intervals=cfg, E_star=E_star, u_E_star=0.05 * E_star,
-                  h_grid=np.geomspace(hmin, hmax, H), laws=list(laws), solver_mode=mode, mc_samples=mc, seed=seed,
-                  tip="T")
+    run_inversion(
+        fits,
+        forces,
+        inv,
+        intervals=cfg,
+        E_star=E_star,
+        u_E_star=0.05 * E_star,
+        h_grid=np.geomspace(hmin, hmax, H),
+        laws=list(laws),
+        solver_mode=mode,
+        mc_samples=mc,
+        seed=seed,
+        tip="T",
+    )
     rng = tmp / "range.h5"
     res = run_adhesion_range(inv, rng, tmp / "T_report.csv", tip="T")
     return res, inv, rng
@@ -55,7 +97,7 @@ def test_recovers_truth(tmp_path, name):
     assert g["status"] == "ok"
     assert g["h"] == pytest.approx(c["h"], rel=0.05)
     assert g["W_A"] == pytest.approx(c["W_A"], rel=0.03)
-    lo, hi = g["h_pcts"][0], g["h_pcts"][-1]           # 95 % CI
+    lo, hi = g["h_pcts"][0], g["h_pcts"][-1]  # 95 % CI
     assert lo < c["h"] < hi
     assert g["W_pcts"][0] < c["W_A"] < g["W_pcts"][-1]
     st = {nm: iv["status"] for nm, iv in res["dugdale"]["intervals"].items()}
@@ -66,8 +108,8 @@ def test_recovers_truth(tmp_path, name):
         j = int(np.argmin(abs(np.log(h / g["h"]))))
         for nm in ("s020", "s040", "s060", "s080"):
             d = inv["intervals"][nm]["laws"]["dugdale"]
-            assert d["Lambda"][j] > d["Lambda_boundary"][j]          # outside the rigid regime
-            assert str(d["model_used"][j]) == "mdn"                   # estimate made by the full model
+            assert d["Lambda"][j] > d["Lambda_boundary"][j]  # outside the rigid regime
+            assert str(d["model_used"][j]) == "mdn"  # estimate made by the full model
     else:
         # the reference W_A is nearly independent of h (paper: down to 0.3 nm)
         assert res["dugdale"]["reference"]["max_rel_change"] < 0.01
@@ -95,8 +137,9 @@ def test_statuses_and_empty_cells(tmp_path):
     W, h, E, R = 0.0467, 4.6e-9, 120e9, 30e-9
     F_big = 20 * float(mech.pulloff_force(4.0, R**3, E, W, h))
     extra = [dict(name="s900", n=2.05, R=R), dict(name="s950", n=4.0, R=R, F_p=F_big)]
-    res, _, rng_path = _case(tmp_path, W_A=W, h=h, E_star=E, R=R, ns=[2, 4, 6], extra=extra, mc=300,
-                             laws=("dugdale", "tri1"))
+    res, _, rng_path = _case(
+        tmp_path, W_A=W, h=h, E_star=E, R=R, ns=[2, 4, 6], extra=extra, mc=300, laws=("dugdale", "tri1")
+    )
     for law in ("dugdale", "tri1"):
         iv = res[law]["intervals"]
         assert iv["s900"]["status"] == "n_too_close_to_2"
@@ -125,8 +168,14 @@ def _fake_inv(h, curves, refs=("r",), S=200, rel_sd=0.01, seed=0):
     ivs = {}
     for nm, (w, n) in curves.items():
         samples = w[None, :] * np.exp(rel_sd * rs.standard_normal((S, 1)))
-        ivs[nm] = {"reference": nm in refs, "n_flag": "ok", "n": n, "n_used": n, "u_n": 0.01,
-                   "laws": {"dugdale": {"W_A": w, "W_A_samples": samples}}}
+        ivs[nm] = {
+            "reference": nm in refs,
+            "n_flag": "ok",
+            "n": n,
+            "n_used": n,
+            "u_n": 0.01,
+            "laws": {"dugdale": {"W_A": w, "W_A_samples": samples}},
+        }
     return {"h": h, "order": list(curves), "intervals": ivs, "laws": ["dugdale"]}
 
 
@@ -134,12 +183,12 @@ def test_multiple_crossings_listed():
     h = np.geomspace(0.2e-9, 10e-9, 101)
     x = np.log(h / 1e-9)
     ref = np.full(h.size, 0.05)
-    bump = 0.05 * np.exp(0.6 * np.sin(2.0 * x))        # meets the reference several times
+    bump = 0.05 * np.exp(0.6 * np.sin(2.0 * x))  # meets the reference several times
     line = 0.05 * (h / 3e-9) ** 0.5
     res = analyse_law(_fake_inv(h, {"r": (ref, 2.0), "b": (bump, 4.0), "l": (line, 4.0)}), "dugdale")
     b = res["intervals"]["b"]
     assert b["status"] == "multiple_crossings" and len(b["crossings"]) >= 3 and np.isnan(b["h"])
-    expect = np.exp(np.arange(-3, 4) * np.pi / 2.0) * 1e-9     # sin(2x) = 0
+    expect = np.exp(np.arange(-3, 4) * np.pi / 2.0) * 1e-9  # sin(2x) = 0
     expect = expect[(expect > h[0]) & (expect < h[-1])]
     np.testing.assert_allclose(np.sort(b["crossings"]), expect, rtol=2e-3)
     assert res["intervals"]["l"]["status"] == "ok"
@@ -182,8 +231,19 @@ def test_gls_chi2_ignores_a_shared_offset():
 
 def test_tri2_is_tri1_at_twice_the_range(tmp_path):
     """Tri2 with peak at h is the Tri1 law with range 2h (same W_A): h_tri2 = h_tri1 / 2 exactly."""
-    res, *_ = _case(tmp_path, W_A=0.05, h=4e-9, E_star=120e9, R=30e-9, ns=[2, 4, 6], laws=("dugdale", "tri1", "tri2", "lj"),
-                    mc=200, hmin=0.5e-9, hmax=20e-9, H=161)
+    res, *_ = _case(
+        tmp_path,
+        W_A=0.05,
+        h=4e-9,
+        E_star=120e9,
+        R=30e-9,
+        ns=[2, 4, 6],
+        laws=("dugdale", "tri1", "tri2", "lj"),
+        mc=200,
+        hmin=0.5e-9,
+        hmax=20e-9,
+        H=161,
+    )
     g1, g2 = res["tri1"]["global"], res["tri2"]["global"]
     assert g2["h"] == pytest.approx(g1["h"] / 2, rel=2e-3)
     assert g2["W_A"] == pytest.approx(g1["W_A"], rel=1e-3)
@@ -197,9 +257,10 @@ def test_two_reference_intervals_are_combined():
     line = 0.052 * (h / 3e-9) ** 0.5
     inv = _fake_inv(h, {"r1": (r1, 2.0), "r2": (r2, 2.0), "l": (line, 4.0)}, refs=("r1", "r2"), S=2000)
     inv["intervals"]["r2"]["laws"]["dugdale"]["W_A_samples"] = r2[None, :] * np.exp(
-        0.03 * np.random.default_rng(9).standard_normal((2000, 1)))          # r2 three times noisier than r1
+        0.03 * np.random.default_rng(9).standard_normal((2000, 1))
+    )  # r2 three times noisier than r1
     res = analyse_law(inv, "dugdale")
-    w_expect = np.exp((9 * np.log(0.050) + np.log(0.054)) / 10)             # weights 1/0.01^2 : 1/0.03^2
+    w_expect = np.exp((9 * np.log(0.050) + np.log(0.054)) / 10)  # weights 1/0.01^2 : 1/0.03^2
     np.testing.assert_allclose(res["reference"]["W_ref"], w_expect, rtol=3e-3)
     assert res["intervals"]["l"]["status"] == "ok"
     assert res["global"]["status"] == "ok" and res["global"]["intervals_used"] == ["r1", "r2", "l"]
@@ -233,8 +294,20 @@ def test_flagged_fit_is_not_silently_used(tmp_path):
         f["fit"].create_dataset("flags", data=np.array(["n_at_bound"], dtype=object), dtype=h5py.string_dtype())
         f["fit/flags"].attrs["units"] = "1"
     inv = tmp_path / "inversion.h5"
-    run_inversion(fits, forces, inv, intervals=cfg, E_star=E, u_E_star=0.0, h_grid=np.geomspace(0.2e-9, 10e-9, 60),
-                  laws=["dugdale"], solver_mode="auto", mc_samples=200, seed=1, tip="T")
+    run_inversion(
+        fits,
+        forces,
+        inv,
+        intervals=cfg,
+        E_star=E,
+        u_E_star=0.0,
+        h_grid=np.geomspace(0.2e-9, 10e-9, 60),
+        laws=["dugdale"],
+        solver_mode="auto",
+        mc_samples=200,
+        seed=1,
+        tip="T",
+    )
     res = run_adhesion_range(inv, tmp_path / "range.h5", tmp_path / "T_report.csv", tip="T")
     iv = res["dugdale"]["intervals"]
     assert iv["s020"]["status"] == "unusable" and "fit_flagged" in iv["s020"]["note"]
@@ -305,7 +378,9 @@ def test_vectorised_covariances_equal_numpy_cov_per_h():
         np.testing.assert_allclose(C[j], np.cov(Y[rows, j, :], rowvar=False), rtol=1e-12)
     assert np.all(np.isnan(C[6]))
     P = precision(C, tau2=0.01)
-    np.testing.assert_allclose(P[2], np.linalg.inv(C[2] + np.eye(3) * (1e-10 + 1e-9 * np.trace(C[2]) / 3 + 0.01)), rtol=1e-10)
+    np.testing.assert_allclose(
+        P[2], np.linalg.inv(C[2] + np.eye(3) * (1e-10 + 1e-9 * np.trace(C[2]) / 3 + 0.01)), rtol=1e-10
+    )
 
 
 def test_chunked_monte_carlo_gls_equals_one_pass():

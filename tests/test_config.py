@@ -1,4 +1,5 @@
 """Config validation: schemas, units, file checks, and the messages users see."""
+
 import math
 
 import pytest
@@ -74,20 +75,38 @@ def test_reduced_modulus_rigid_flat_limit():
         ({"tem.pixel_size": "0.3 GPa"}, "tem.pixel_size: '0.3 GPa' is not a length"),
         ({"materials.tip.E": "150"}, "materials.tip.E"),
         ({"tem.colour": "red"}, "'colour' was unexpected"),
-        ({"cantilever": {"spring_constant": "0.2 N/m", "deflection_sensitivity": "50 nm/V", "springconstant": "1 N/m"}}, "springconstant"),
+        (
+            {
+                "cantilever": {
+                    "spring_constant": "0.2 N/m",
+                    "deflection_sensitivity": "50 nm/V",
+                    "springconstant": "1 N/m",
+                }
+            },
+            "springconstant",
+        ),
         ({"intervals.1.image": "missing.tif"}, "intervals[1].image"),
         ({"intervals.1.curves": "nothing_here"}, "intervals[1].curves"),
         ({"reference_intervals": ["nope"]}, "reference_intervals[0]"),
         ({"data_dir": KeyError}, "'data_dir' is a required property"),
-        ({"materials": {"E_star": "80 GPa", "tip": {"E": "1 GPa", "nu": 0.3}}}, "give either E_star, or both tip and sample"),
+        (
+            {"materials": {"E_star": "80 GPa", "tip": {"E": "1 GPa", "nu": 0.3}}},
+            "give either E_star, or both tip and sample",
+        ),
         ({"tem.orientation": "sideways"}, "tem.orientation: 'sideways' is not one of"),
         ({"tem.coating": 15}, "tem.coating: 15 is not valid; expected 'auto' / 'none' or a length with its unit"),
         # values the types allow but physics does not (issue 17): named with file and key, not a traceback later
         ({"materials.tip.E": "-150 GPa"}, "materials.tip.E: must be positive"),
         ({"materials.tip.E": "0 GPa"}, "materials.tip.E: must be positive"),
         ({"materials.sample.nu": -1}, "materials.sample.nu: Poisson's ratio must lie in (-1, 0.5]"),
-        ({"materials": {"E_star": "80 GPa", "E_star_uncertainty": "90 GPa"}}, "E_star_uncertainty (90 GPa) is not smaller than E* (80 GPa)"),
-        ({"materials": {"E_star": "80 GPa", "E_star_uncertainty": "-1 GPa"}}, "materials.E_star_uncertainty: an uncertainty must be >= 0"),
+        (
+            {"materials": {"E_star": "80 GPa", "E_star_uncertainty": "90 GPa"}},
+            "E_star_uncertainty (90 GPa) is not smaller than E* (80 GPa)",
+        ),
+        (
+            {"materials": {"E_star": "80 GPa", "E_star_uncertainty": "-1 GPa"}},
+            "materials.E_star_uncertainty: an uncertainty must be >= 0",
+        ),
         ({"cantilever.spring_constant": "0 N/m"}, "cantilever.spring_constant: must be positive"),
         ({"cantilever.deflection_sensitivity": "-50 nm/V"}, "cantilever.deflection_sensitivity: must be positive"),
         ({"tem.pixel_size": "0 nm"}, "tem.pixel_size: must be positive"),

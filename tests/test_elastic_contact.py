@@ -23,10 +23,13 @@ def _mdn_ratio(n, lam):
 
 
 # ----------------------------------------------------------------------- building blocks
-@pytest.mark.parametrize("b,r", [(1.0, 0.0), (1.0, 0.3), (1.0, 0.999), (1.0, 1.0), (1.0, 1.001), (1.0, 2.5), (0.2, 7.0)])
+@pytest.mark.parametrize(
+    "b,r", [(1.0, 0.0), (1.0, 0.3), (1.0, 0.999), (1.0, 1.0), (1.0, 1.001), (1.0, 2.5), (0.2, 7.0)]
+)
 def test_disk_kernel_closed_form_vs_ring_quadrature(b, r):
     """int_disk dA/|r - rho| from the E/K closed form equals the ring-by-ring quadrature
     int_0^b 4 s K(4rs/(r+s)^2)/(r+s) ds (log singularity at s = r handled by quad)."""
+
     def ring(s):
         if r + s == 0 or s == r:
             return 0.0
@@ -138,8 +141,13 @@ def test_tabulated_law_rigid_limit_vs_quadrature():
 
     def rigid(D):  # F/F_Dug = int_0^inf tau(D + w^(1/p)) dw, w = z^p  (plan area pi (n Q z)^(2/n))
         kinks = [(sk - D) ** p for sk in s[1:] if sk > D]
-        return integrate.quad(lambda w: float(np.interp(D + w ** (1 / p), s, tau, right=0.0)), 0, kinks[-1],
-                              points=kinks[:-1] or None, limit=400)[0]
+        return integrate.quad(
+            lambda w: float(np.interp(D + w ** (1 / p), s, tau, right=0.0)),
+            0,
+            kinks[-1],
+            points=kinks[:-1] or None,
+            limit=400,
+        )[0]
 
     ref = max(rigid(D) for D in np.linspace(0.0, 1.5, 301))
     assert elastic_pulloff(n, 1e-4, law).ratio == pytest.approx(ref, rel=3e-3)
@@ -180,8 +188,10 @@ def test_fig7_law_differences_at_n5():
         assert 1.15 < elastic_pulloff(n, lam, "tri1").pulloff_nd / ref < 1.18
         assert 0.765 < elastic_pulloff(n, lam, "tri2").pulloff_nd / ref < 0.785
     lam = float(M.transition_parameter(n, Q, E, W, 0.3 * NM))
-    dev = {law: 1.0 - elastic_pulloff(n, lam, law).pulloff_nd / float(M.pulloff_nd(n, lam, potential=law, model="rigid"))
-           for law in ("dugdale", "lj", "tri1", "tri2")}
+    dev = {
+        law: 1.0 - elastic_pulloff(n, lam, law).pulloff_nd / float(M.pulloff_nd(n, lam, potential=law, model="rigid"))
+        for law in ("dugdale", "lj", "tri1", "tri2")
+    }
     assert 0.05 < dev["tri1"] < 0.085
     assert max(dev["dugdale"], dev["lj"], dev["tri2"]) < 0.035
 

@@ -24,13 +24,36 @@ def tri1_run(tmp_path_factory):
     d = tmp_path_factory.mktemp("elastic_inv")
     ivs = [dict(name="i0", n=2.0, R=R, reference=True), dict(name="i1", n=3.0, R=R), dict(name="i2", n=4.0, R=R)]
     # truth from the direct elastic solve of Tri1 (not the table the inversion uses)
-    fits, forces, cfg = write_synthetic_inputs(d, W_A=W_TRUE, h=H_TRUE, E_star=E_STAR, intervals=ivs, perturb=False,
-                                               potential="tri1", model="elastic", exact=True, rel_sd_curve=0.02)
+    fits, forces, cfg = write_synthetic_inputs(
+        d,
+        W_A=W_TRUE,
+        h=H_TRUE,
+        E_star=E_STAR,
+        intervals=ivs,
+        perturb=False,
+        potential="tri1",
+        model="elastic",
+        exact=True,
+        rel_sd_curve=0.02,
+    )
     out = {}
     for mode in ("auto", "rigid"):
         p = d / f"inv_{mode}.h5"
-        run_inversion(fits, forces, p, intervals=cfg, E_star=E_STAR, u_E_star=0.0, h_grid=H_GRID, laws=["dugdale", "tri1"],
-                      solver_mode=mode, mc_samples=40, seed=3, tip="soft", mc_h_points=9)
+        run_inversion(
+            fits,
+            forces,
+            p,
+            intervals=cfg,
+            E_star=E_STAR,
+            u_E_star=0.0,
+            h_grid=H_GRID,
+            laws=["dugdale", "tri1"],
+            solver_mode=mode,
+            mc_samples=40,
+            seed=3,
+            tip="soft",
+            mc_h_points=9,
+        )
         out[mode] = p
     return d, out
 

@@ -104,7 +104,9 @@ def test_law_boundary_is_the_5_percent_criterion(law):
     lb = M.rigid_boundary(n, law)
     r = M.pulloff_nd(n, lb, potential=law, model="rigid") / M.pulloff_nd(n, lb, potential=law, model="elastic")
     assert np.allclose(r, 1.05, atol=2e-3)
-    below = M.pulloff_nd(n, 0.5 * lb, potential=law, model="rigid") / M.pulloff_nd(n, 0.5 * lb, potential=law, model="elastic")
+    below = M.pulloff_nd(n, 0.5 * lb, potential=law, model="rigid") / M.pulloff_nd(
+        n, 0.5 * lb, potential=law, model="elastic"
+    )
     assert np.all(below < 1.05)
 
 
@@ -112,6 +114,10 @@ def test_law_boundary_is_the_5_percent_criterion(law):
 @pytest.mark.parametrize("law", LAWS)
 def test_fast_path_against_direct_solve_many(law):
     rng = np.random.default_rng(11)
-    err = [T.table_error(law, float(np.exp(rng.uniform(np.log(2), np.log(20)))),
-                         float(np.exp(rng.uniform(np.log(1e-3), np.log(30))))) for _ in range(40)]
+    err = [
+        T.table_error(
+            law, float(np.exp(rng.uniform(np.log(2), np.log(20)))), float(np.exp(rng.uniform(np.log(1e-3), np.log(30))))
+        )
+        for _ in range(40)
+    ]
     assert np.max(np.abs(err)) < 5e-3

@@ -1,4 +1,5 @@
 """Power-law fit (Eq. 1, 2): exact recovery, SI units, covariance calibration, flags, stage files."""
+
 from __future__ import annotations
 
 import h5py
@@ -102,9 +103,13 @@ def test_rigid_dugdale_log_gradient_matches_central_differences():
     e = 1e-6
     for n, R in [(2.0, 10e-9), (3.7, 15e-9), (6.0, 25e-9)]:
         Q = R ** (n - 1)
-        fd = np.column_stack([
-            (np.log(rigid_dugdale_area(n + e, Q, h)) - np.log(rigid_dugdale_area(n - e, Q, h))) / (2 * e),
-            (np.log(rigid_dugdale_area(n, Q * np.exp(e), h)) - np.log(rigid_dugdale_area(n, Q * np.exp(-e), h))) / (2 * e)])
+        fd = np.column_stack(
+            [
+                (np.log(rigid_dugdale_area(n + e, Q, h)) - np.log(rigid_dugdale_area(n - e, Q, h))) / (2 * e),
+                (np.log(rigid_dugdale_area(n, Q * np.exp(e), h)) - np.log(rigid_dugdale_area(n, Q * np.exp(-e), h)))
+                / (2 * e),
+            ]
+        )
         assert np.allclose(rigid_dugdale_log_gradient(n, Q, h), fd, rtol=1e-7, atol=0)
 
 
@@ -241,7 +246,16 @@ def test_non_finite_edge_covariance_falls_back_to_the_residual_scatter():
     r, z, side = _two_flanks()
     basis = np.ones((r.size, 1))
     normal = np.column_stack([np.ones(r.size), np.zeros(r.size)])
-    f = fit_power_law(r, z, 6 * NM, pixel_size=0.2 * NM, groups=side, flank=side, edge_basis=basis,
-                      edge_cov=np.full((1, 1), np.nan), normal_rz=normal)
+    f = fit_power_law(
+        r,
+        z,
+        6 * NM,
+        pixel_size=0.2 * NM,
+        groups=side,
+        flank=side,
+        edge_basis=basis,
+        edge_cov=np.full((1, 1), np.nan),
+        normal_rz=normal,
+    )
     assert np.isfinite(f.sigma_n) and f.sigma_n > 0
     assert any("no finite edge covariance" in s for s in f.notes)

@@ -1,4 +1,5 @@
 """Bad input: clear errors naming the file, per-curve rejections, all-rejected failure."""
+
 import h5py
 import numpy as np
 import pandas as pd
@@ -82,7 +83,11 @@ def test_all_rejected_fails_without_output(tmp_path):
     with pytest.raises(ForcesStageError) as ei:
         run_forces(paths, out, tmp_path / "o.png", cantilever=CANT, reader={}, tip="T", interval="i3")
     msg = str(ei.value)
-    assert "all 2 force curves were rejected" in msg and "a.csv: no retract segment" in msg and "b.csv: missing column" in msg
+    assert (
+        "all 2 force curves were rejected" in msg
+        and "a.csv: no retract segment" in msg
+        and "b.csv: missing column" in msg
+    )
     assert not out.exists() and not (tmp_path / "o.png").exists()
     assert not list(tmp_path.glob(".*part"))
 
@@ -92,8 +97,13 @@ def test_custom_columns_and_units(tmp_path):
     df = pd.DataFrame({"Z (um)": -(c.height - 1e-6) * 1e6, "Defl (nm)": c.deflection_V * 50.0, "dir": c.segment})
     p = tmp_path / "c.tsv"
     df.to_csv(p, sep="\t", index=False)
-    reader = {"columns": {"height": "Z (um)", "deflection": "Defl (nm)", "segment": "dir"}, "height_unit": "um",
-              "deflection_unit": "nm", "height_axis": "extension", "min_curves": 1}
+    reader = {
+        "columns": {"height": "Z (um)", "deflection": "Defl (nm)", "segment": "dir"},
+        "height_unit": "um",
+        "deflection_unit": "nm",
+        "height_axis": "extension",
+        "min_curves": 1,
+    }
     (cv,) = read_curves(p, reader)
     assert cv.defl_units == "m"
     out = tmp_path / "o.h5"
@@ -116,7 +126,9 @@ def test_deflection_in_nm_read_as_volts_is_refused(tmp_path):
     c = make_force_curve(5e-9, 0.2, 50e-9, seed=2)
     c.deflection_V = c.deflection_V * 50.0  # nm written where volts are expected
     p = write_curve_csv(tmp_path / "nm.csv", c)
-    with pytest.raises(ForceCurveError, match=r"reaches .* V, beyond any photodetector's range.*force_curves.deflection_unit"):
+    with pytest.raises(
+        ForceCurveError, match=r"reaches .* V, beyond any photodetector's range.*force_curves.deflection_unit"
+    ):
         read_curves(p)
     (cu,) = read_curves(p, {"deflection_unit": "nm"})
     assert cu.defl_units == "m" and np.abs(cu.defl_retract).max() < 1e-6

@@ -1,4 +1,5 @@
 """Reference-lever and thermal spring constants, calibration precedence and propagation."""
+
 import numpy as np
 import pytest
 
@@ -33,9 +34,16 @@ def test_reference_lever_calibration_with_hard_sample_curves(tmp_path):
     invols = 45e-9
     for i in range(3):
         write_curve_csv(tmp_path / "hard" / f"h{i}.csv", make_force_curve(2e-9, 0.3, invols, seed=i))
-    cant = {"base_dir": str(tmp_path), "hard_sample_curves": "hard",
-            "reference_lever": {"spring_constant": 0.5, "spring_constant_uncertainty": 0.025, "deflection_sensitivity": 90e-9,
-                                "deflection_sensitivity_uncertainty": 0.9e-9}}
+    cant = {
+        "base_dir": str(tmp_path),
+        "hard_sample_curves": "hard",
+        "reference_lever": {
+            "spring_constant": 0.5,
+            "spring_constant_uncertainty": 0.025,
+            "deflection_sensitivity": 90e-9,
+            "deflection_sensitivity_uncertainty": 0.9e-9,
+        },
+    }
     cal = calibrate(cant, [_curve(9.9, 9.9)])
     assert cal.invols_method == "hard_sample" and cal.k_method == "reference_lever"
     assert cal.invols == pytest.approx(invols, rel=0.01)
@@ -60,8 +68,14 @@ def test_thermal_recovers_k(tmp_path, Q):
     assert thermal_k(1.0, 1.0, "v-shaped") == pytest.approx(0.764 * K_B)
     # through the calibration, file in volts, InvOLS given
     write_thermal_csv(tmp_path / "th.csv", t, v)
-    cal = calibrate({"base_dir": str(tmp_path), "deflection_sensitivity": invols,
-                     "thermal": {"file": "th.csv", "temperature": T, "temperature_uncertainty": 1.0}}, [_curve()])
+    cal = calibrate(
+        {
+            "base_dir": str(tmp_path),
+            "deflection_sensitivity": invols,
+            "thermal": {"file": "th.csv", "temperature": T, "temperature_uncertainty": 1.0},
+        },
+        [_curve()],
+    )
     assert cal.k_method == "thermal" and cal.k == pytest.approx(k, rel=0.03)
     assert 0 < cal.u_k / cal.k < 0.05
     assert cal.details["thermal"]["Q"][0] == pytest.approx(Q, rel=0.15)
@@ -82,8 +96,14 @@ def test_precedence_yaml_over_file_and_errors():
     cal = calibrate({"spring_constant": 0.2}, [_curve()])
     assert np.isnan(cal.invols)
     with pytest.raises(CalibrationError, match=r"tip 'x' interval 'y': no curve gives an InvOLS.*contact_fallback"):
-        resolve_interval_invols(with_defaults({"spring_constant": 0.2}, CANTILEVER_DEFAULTS), {}, [_curve()], cal,
-                                reader={}, label="tip 'x' interval 'y'")
+        resolve_interval_invols(
+            with_defaults({"spring_constant": 0.2}, CANTILEVER_DEFAULTS),
+            {},
+            [_curve()],
+            cal,
+            reader={},
+            label="tip 'x' interval 'y'",
+        )
     with pytest.raises(CalibrationError, match="spring constant"):
         calibrate({"deflection_sensitivity": 40e-9}, [_curve()])
 
@@ -106,8 +126,16 @@ def test_one_spiked_hard_sample_curve_is_left_out_not_fatal(tmp_path):
             contact = app[-120:-60]
             c.deflection_V[contact[::6]] += 3.0  # ten spikes of 3 V across the contact part
         write_curve_csv(cal_dir / f"h{j}.csv", c)
-    cal = calibrate({"spring_constant": 0.3, "hard_sample_curves": "hard", "deflection_sensitivity_method": "hard_sample",
-                     "base_dir": str(tmp_path)}, [], {})
+    cal = calibrate(
+        {
+            "spring_constant": 0.3,
+            "hard_sample_curves": "hard",
+            "deflection_sensitivity_method": "hard_sample",
+            "base_dir": str(tmp_path),
+        },
+        [],
+        {},
+    )
     assert cal.invols == pytest.approx(invols, rel=0.01)
     assert "1 curve(s) left out" in cal.invols_source and "h2.csv" in cal.invols_source
     assert len(cal.details["hard_sample"]["invols"][0]) == 3

@@ -10,6 +10,7 @@ stiff lever's small deflection, read around a corner the filter rounds: 2 % or 3
 except where the contact stiffness biases
 the contact-slope InvOLS, which stage 4 corrects; see the second test).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -25,13 +26,28 @@ def q_of(n, R):
 
 
 CASES = {  # name: (Interaction, Lever, expected shape)
-    "soft lever, Dugdale, filtered jump": (Interaction(12e-9, "dugdale", 4.5e-9, 4.0, q_of(4, 15e-9)), Lever(k=0.1, f0=20e3), "sharp jump"),
-    "stiff lever, Dugdale: corner": (Interaction(4e-9, "dugdale", 4.5e-9, 2.0, 15e-9), Lever(k=2.0, f0=90e3), "rounded"),
+    "soft lever, Dugdale, filtered jump": (
+        Interaction(12e-9, "dugdale", 4.5e-9, 4.0, q_of(4, 15e-9)),
+        Lever(k=0.1, f0=20e3),
+        "sharp jump",
+    ),
+    "stiff lever, Dugdale: corner": (
+        Interaction(4e-9, "dugdale", 4.5e-9, 2.0, 15e-9),
+        Lever(k=2.0, f0=90e3),
+        "rounded",
+    ),
     # the lever leaves the contact line along the law for ~4 samples, then jumps in one: read as a
     # filter's transition before, this read the extrapolated contact line at the jump, 6-9 % high
-    "stiff lever, Dugdale n 4: detaches, then a sharp jump": (Interaction(12e-9, "dugdale", 4.5e-9, 4.0, q_of(4, 15e-9)),
-                                                              Lever(k=2.0, f0=90e3), "rounded"),
-    "stiff lever, exponential law: rounded": (Interaction(8e-9, "exponential", 0.8e-9, 4.0, q_of(4, 15e-9)), Lever(k=3.0, f0=110e3), "rounded"),
+    "stiff lever, Dugdale n 4: detaches, then a sharp jump": (
+        Interaction(12e-9, "dugdale", 4.5e-9, 4.0, q_of(4, 15e-9)),
+        Lever(k=2.0, f0=90e3),
+        "rounded",
+    ),
+    "stiff lever, exponential law: rounded": (
+        Interaction(8e-9, "exponential", 0.8e-9, 4.0, q_of(4, 15e-9)),
+        Lever(k=3.0, f0=110e3),
+        "rounded",
+    ),
     "van der Waals, soft": (Interaction(6e-9, "vdw", 0.3e-9, 2.0, 15e-9), Lever(k=0.2, f0=28e3), "sharp jump"),
 }
 
@@ -47,7 +63,11 @@ def test_pulloff_on_independent_curves(name):
         err = po.delta / c.truth["delta_m"] - 1.0
         # a stiff lever's Delta (2-3 nm over 0.1 nm steps, 0.03 nm noise) is read from a handful of
         # samples around a corner the anti-alias filter rounds: within 2 % or 3 of its uncertainty
-        tol = max(0.015, 2.5 * po.u_delta / c.truth["delta_m"]) if shape == "sharp jump" else max(0.02, 3.0 * po.u_delta / c.truth["delta_m"])
+        tol = (
+            max(0.015, 2.5 * po.u_delta / c.truth["delta_m"])
+            if shape == "sharp jump"
+            else max(0.02, 3.0 * po.u_delta / c.truth["delta_m"])
+        )
         assert abs(err) < tol, (seed, err, po.u_delta / c.truth["delta_m"], po.shape)
         errs.append(err)
         if shape == "rounded":
@@ -83,9 +103,19 @@ def test_contact_compliance_corrects_the_contact_slope(k, n):
 def test_inversion_applies_the_compliance_only_to_contact_invols():
     from pipeline.inversion.calibration import correct_contact_compliance
 
-    fo = {"invols_method": "contact", "invols_shared": False, "k": 10.0, "contact_fit_deflection": np.array([4e-9, 16e-9]),
-          "F_p_mean": 20e-9, "F_p_sem": 0.2e-9, "F_p_std": 0.6e-9, "F_p_curves": np.full(3, 20e-9), "invols": 60e-9,
-          "u_invols": 0.3e-9, "contact_segment": "approach"}
+    fo = {
+        "invols_method": "contact",
+        "invols_shared": False,
+        "k": 10.0,
+        "contact_fit_deflection": np.array([4e-9, 16e-9]),
+        "F_p_mean": 20e-9,
+        "F_p_sem": 0.2e-9,
+        "F_p_std": 0.6e-9,
+        "F_p_curves": np.full(3, 20e-9),
+        "invols": 60e-9,
+        "u_invols": 0.3e-9,
+        "contact_segment": "approach",
+    }
     Q = q_of(3.0, 15e-9)
     out, c = correct_contact_compliance(fo, 3.0, Q, 100e9)
     assert c == pytest.approx(contact_compliance_factor(10.0, (4e-9, 16e-9), 20e-9, 3.0, Q, 100e9))

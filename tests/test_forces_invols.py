@@ -1,5 +1,6 @@
 """InvOLS per interval (the chip is remounted for every TEM session) and the check that catches a
 forgotten remount; bad contact parts; the per-interval Monte Carlo draw."""
+
 from __future__ import annotations
 
 import json
@@ -24,8 +25,15 @@ def _curves(tmp, name, F, invols, n=8, scatter=0.03, seed=0, distort=None, **kw)
     Fs = F * (1.0 + scatter * rng.standard_normal(n))
     paths = []
     for j, f in enumerate(Fs):
-        c = make_force_curve(float(f), K, invols, seed=1000 * seed + j, offset_V=float(rng.normal(0, 0.05)),
-                             tilt=float(rng.normal(0, 2e5)), **kw)
+        c = make_force_curve(
+            float(f),
+            K,
+            invols,
+            seed=1000 * seed + j,
+            offset_V=float(rng.normal(0, 0.05)),
+            tilt=float(rng.normal(0, 2e5)),
+            **kw,
+        )
         if distort is not None:
             distort(c)
         paths.append(write_curve_csv(tmp / name / f"c{j}.csv", c))
@@ -35,8 +43,16 @@ def _curves(tmp, name, F, invols, n=8, scatter=0.03, seed=0, distort=None, **kw)
 def _run(tmp, name, paths, cant=None, interval_cfg=None, reader=None):
     out = tmp / f"{name}.h5"
     cant = {"spring_constant": K, "spring_constant_uncertainty": 0.04, "base_dir": str(tmp), **(cant or {})}
-    run_forces(paths, out, tmp / f"{name}.png", cantilever=cant, reader=reader or {}, tip="T", interval=name,
-               interval_cfg=interval_cfg or {})
+    run_forces(
+        paths,
+        out,
+        tmp / f"{name}.png",
+        cantilever=cant,
+        reader=reader or {},
+        tip="T",
+        interval=name,
+        interval_cfg=interval_cfg or {},
+    )
     return out
 
 
@@ -54,8 +70,14 @@ def test_drifting_invols_is_measured_for_every_interval(tmp_path):
             assert 0.004 < c["u_invols_rel"][()] < 0.01  # SEM of 8 slopes with the 0.5 % floor
             assert f["interval/F_p_mean"][()] == pytest.approx(Fs.mean(), rel=0.01)
             assert c["u_factor_rel"][()] == pytest.approx(np.hypot(0.05, c["u_invols_rel"][()]), rel=1e-9)
-        with h5py.File(_run(tmp_path, f"i{i}_tip", paths, {"deflection_sensitivity": INVOLS0,
-                                                              "deflection_sensitivity_method": "given"})) as f:
+        with h5py.File(
+            _run(
+                tmp_path,
+                f"i{i}_tip",
+                paths,
+                {"deflection_sensitivity": INVOLS0, "deflection_sensitivity_method": "given"},
+            )
+        ) as f:
             assert f["interval/F_p_mean"][()] / Fs.mean() - 1.0 == pytest.approx(1.0 / d - 1.0, abs=0.01)
 
 
@@ -64,8 +86,16 @@ def test_forgotten_remount_is_reported_in_words(tmp_path, caplog):
     slope is measured anyway and the disagreement (-8.4 %) is in the HDF5, the warnings and the log."""
     paths, _ = _curves(tmp_path, "i3", 10e-9, 60e-9, seed=3)
     with caplog.at_level(logging.WARNING):
-        out = _run(tmp_path, "i3", paths, {"deflection_sensitivity": INVOLS0, "deflection_sensitivity_uncertainty": 0.5e-9,
-                                           "deflection_sensitivity_method": "given"})
+        out = _run(
+            tmp_path,
+            "i3",
+            paths,
+            {
+                "deflection_sensitivity": INVOLS0,
+                "deflection_sensitivity_uncertainty": 0.5e-9,
+                "deflection_sensitivity_method": "given",
+            },
+        )
     with h5py.File(out) as f:
         check = f["calibration/invols_check"][()].decode()
         assert re.search(r"by -8\.[34] %", check) and "remounted" in check
@@ -74,8 +104,16 @@ def test_forgotten_remount_is_reported_in_words(tmp_path, caplog):
         assert any("interval 'i3'" in w and re.search(r"-8\.[34] %", w) for w in json.loads(f.attrs["warnings"]))
     assert any("interval 'i3'" in r.getMessage() and re.search(r"-8\.[34] %", r.getMessage()) for r in caplog.records)
     # the right value is not flagged
-    out = _run(tmp_path, "i3ok", paths, {"deflection_sensitivity": 60e-9, "deflection_sensitivity_uncertainty": 0.5e-9,
-                                         "deflection_sensitivity_method": "given"})
+    out = _run(
+        tmp_path,
+        "i3ok",
+        paths,
+        {
+            "deflection_sensitivity": 60e-9,
+            "deflection_sensitivity_uncertainty": 0.5e-9,
+            "deflection_sensitivity_method": "given",
+        },
+    )
     with h5py.File(out) as f:
         assert f["calibration/invols_check"][()].decode() == ""
 
@@ -117,7 +155,9 @@ def _short_contact(c):
 @pytest.mark.parametrize("distort,reason", [(_hertzian, "not linear"), (_short_contact, "no repulsive contact")])
 def test_curves_that_cannot_give_invols_fail_naming_interval_and_setting(tmp_path, distort, reason):
     paths, _ = _curves(tmp_path, "i2", 10e-9, 58e-9, n=4, seed=2, distort=distort)
-    with pytest.raises(CalibrationError, match=rf"tip 'T' interval 'i2': no curve gives an InvOLS .*{reason}.*contact_fallback"):
+    with pytest.raises(
+        CalibrationError, match=rf"tip 'T' interval 'i2': no curve gives an InvOLS .*{reason}.*contact_fallback"
+    ):
         _run(tmp_path, "i2", paths)
     assert not (tmp_path / "i2.h5").exists()
     # the configured fallback: the tip-level value, with a warning that says so
@@ -133,6 +173,7 @@ def test_contact_slope_that_changes_sign_gives_no_invols(tmp_path):
         v = c.deflection_V[app]
         base = np.median(v[: v.size // 4])
         c.deflection_V[app] = np.where(v - base > 0, base - (v - base), v)
+
     paths, _ = _curves(tmp_path, "i4", 10e-9, 58e-9, n=3, seed=4, distort=flip)
     with pytest.raises(CalibrationError, match="interval 'i4'.*(no repulsive contact|not positive)"):
         _run(tmp_path, "i4", paths)
@@ -140,7 +181,10 @@ def test_contact_slope_that_changes_sign_gives_no_invols(tmp_path):
 
 def test_single_curve_interval_needs_the_setting(tmp_path):
     paths, Fs = _curves(tmp_path, "i5", 10e-9, 58e-9, n=1, seed=5)
-    with pytest.raises(ForcesStageError, match=r"interval 'i5': only 1 usable force curve\(s\) \(.*c0.csv\).*force_curves.min_curves: 1"):
+    with pytest.raises(
+        ForcesStageError,
+        match=r"interval 'i5': only 1 usable force curve\(s\) \(.*c0.csv\).*force_curves.min_curves: 1",
+    ):
         _run(tmp_path, "i5", paths)
     assert not (tmp_path / "i5.h5").exists()
     with h5py.File(_run(tmp_path, "i5", paths, reader={"min_curves": 1})) as f:
@@ -158,15 +202,36 @@ def test_monte_carlo_draws_invols_per_interval_and_k_once(tmp_path):
 
     ivs = [{"name": "a", "n": 2.0, "R": 20e-9, "reference": True}, {"name": "b", "n": 4.0, "R": 20e-9}]
     for shared, rho in ((False, 0.5), (True, 1.0)):
-        fits, forces, cfg = write_synthetic_inputs(tmp_path / str(shared), W_A=0.05, h=3e-9, E_star=100e9, intervals=ivs,
-                                                   k=1.0, u_k=0.05, invols=50e-9, u_invols=2.5e-9, seed=3)
+        fits, forces, cfg = write_synthetic_inputs(
+            tmp_path / str(shared),
+            W_A=0.05,
+            h=3e-9,
+            E_star=100e9,
+            intervals=ivs,
+            k=1.0,
+            u_k=0.05,
+            invols=50e-9,
+            u_invols=2.5e-9,
+            seed=3,
+        )
         if not shared:
             for p in forces.values():
                 with h5py.File(p, "a") as f:
                     f["calibration"].create_dataset("invols_shared", data=False)
         out = tmp_path / f"inv{shared}.h5"
-        run_inversion(fits, forces, out, intervals=cfg, E_star=100e9, u_E_star=0.0, h_grid=np.geomspace(1e-9, 8e-9, 20),
-                      laws=("dugdale",), mc_samples=4000, seed=1, tip="t")
+        run_inversion(
+            fits,
+            forces,
+            out,
+            intervals=cfg,
+            E_star=100e9,
+            u_E_star=0.0,
+            h_grid=np.geomspace(1e-9, 8e-9, 20),
+            laws=("dugdale",),
+            mc_samples=4000,
+            seed=1,
+            tip="t",
+        )
         inv = load_inversion(out)
         fa, fb = (inv["intervals"][n]["draws"]["cal_factor"] for n in ("a", "b"))
         assert np.std(fa) == pytest.approx(0.05 * (np.sqrt(2) if not shared else np.sqrt(2)), rel=0.1)

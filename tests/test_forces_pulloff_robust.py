@@ -6,6 +6,7 @@ by the errors in its abscissa and read Delta ~20 % low before) and ``piezo`` (th
 jitters, the lever follows it and can rise and fall along its contact line before it lets go).
 The statistics of the weighted mean are checked by simulation, not against their own formulas.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,11 +27,14 @@ def _read(F_p, k, seed, **kw):
     return po.delta * k / F_p - 1.0, po.u_delta * k / F_p
 
 
-@pytest.mark.parametrize("jitter, amplitude, fk, max_mean, max_worst", [
-    ("sensor", 0.5e-9, 10e-9, 0.006, 0.03),   # 5 x the 0.1 nm step
-    ("sensor", 1.0e-9, 3e-9, 0.015, 0.08),
-    ("piezo", 0.2e-9, 10e-9, 0.008, 0.06),
-])
+@pytest.mark.parametrize(
+    "jitter, amplitude, fk, max_mean, max_worst",
+    [
+        ("sensor", 0.5e-9, 10e-9, 0.006, 0.03),  # 5 x the 0.1 nm step
+        ("sensor", 1.0e-9, 3e-9, 0.015, 0.08),
+        ("piezo", 0.2e-9, 10e-9, 0.008, 0.06),
+    ],
+)
 def test_jittered_pulloff_unbiased_and_covered(jitter, amplitude, fk, max_mean, max_worst):
     k = 0.5
     err, u = np.array([_read(fk * k, k, s, height_jitter=amplitude, jitter=jitter) for s in range(60)]).T
@@ -99,9 +103,21 @@ def test_stage_weights_a_noisy_curve_down(tmp_path):
         c = make_force_curve(float(Fj), k, INVOLS, seed=j, noise=1.2e-9 if j == 2 else 0.1e-9)
         paths.append(write_curve_csv(tmp_path / f"c{j}.csv", c))
     out = tmp_path / "f.h5"
-    run_forces(paths, out, tmp_path / "f.png", cantilever={"spring_constant": k, "deflection_sensitivity": INVOLS,
-                                                          "method": "given", "base_dir": str(tmp_path)},
-               reader={}, tip="t", interval="i", interval_cfg={})
+    run_forces(
+        paths,
+        out,
+        tmp_path / "f.png",
+        cantilever={
+            "spring_constant": k,
+            "deflection_sensitivity": INVOLS,
+            "method": "given",
+            "base_dir": str(tmp_path),
+        },
+        reader={},
+        tip="t",
+        interval="i",
+        interval_cfg={},
+    )
     with h5py.File(out) as f:
         w = f["curves/weight"][()]
         mean = f["interval/F_p_mean"][()]
@@ -127,9 +143,19 @@ def test_clipped_pulloff_is_rejected_with_the_reason(tmp_path):
         with pytest.raises(ForceCurveError, match="clipped"):
             detect_pulloff(1e-6 - c.height[r], c.deflection_V[r])
     with pytest.raises(ForcesStageError, match="clipped"):
-        run_forces(paths, tmp_path / "f.h5", tmp_path / "f.png", cantilever={"spring_constant": k, "deflection_sensitivity": INVOLS,
-                                                                            "deflection_sensitivity_method": "given"}, reader={},
-                   tip="t", interval="i")
+        run_forces(
+            paths,
+            tmp_path / "f.h5",
+            tmp_path / "f.png",
+            cantilever={
+                "spring_constant": k,
+                "deflection_sensitivity": INVOLS,
+                "deflection_sensitivity_method": "given",
+            },
+            reader={},
+            tip="t",
+            interval="i",
+        )
     assert not (tmp_path / "f.h5").exists()
     # quantised to 12 bits over +-10 V (4.9 mV, 0.24 nm): flat runs, read as before
     c = make_force_curve(F, k, INVOLS, seed=3, noise=0.05e-9)

@@ -1,4 +1,5 @@
 """Real instrument files (afmformats test data, MIT; see tests/data/afmformats/README.md)."""
+
 from pathlib import Path
 
 import h5py
@@ -41,9 +42,15 @@ def test_asylum_ibw_pulloff_end_to_end(tmp_path):
         assert f["interval/F_p_mean"][()] == pytest.approx(12.77e-9, rel=0.01)
         assert f["interval/n_curves_used"][()] == 1
     # the YAML overrides the file: F_p scales with k * InvOLS
-    run_forces([SIN], out, tmp_path / "sin.png", cantilever={"spring_constant": 2.0, "deflection_sensitivity": 50e-9,
-                                                             "deflection_sensitivity_method": "given"},
-               reader=ONE, tip="SiN", interval="0")
+    run_forces(
+        [SIN],
+        out,
+        tmp_path / "sin.png",
+        cantilever={"spring_constant": 2.0, "deflection_sensitivity": 50e-9, "deflection_sensitivity_method": "given"},
+        reader=ONE,
+        tip="SiN",
+        interval="0",
+    )
     with h5py.File(out) as f:
         assert f["interval/F_p_mean"][()] == pytest.approx(12.77e-9 * 2.0 * 50 / (1.1841 * 44.99), rel=0.01)
         assert f["curves/spring_constant_file"][0] == 1.1841
@@ -74,9 +81,17 @@ def test_jpk_without_calibration_metadata(tmp_path):
     # beyond the noise (the deepest point of the fitted bottom is 0.0115 V, below 5 x the 0.0023 V noise;
     # the raw minimum, 0.02 V, is the noise's own extreme): rejected, naming the setting
     with pytest.raises(ForcesStageError, match=r"no pull-off event.*force_curves.min_pulloff_snr"):
-        run_forces([JPK_NOCAL], tmp_path / "n.h5", tmp_path / "n.png",
-                   cantilever={"spring_constant": 0.1, "deflection_sensitivity": 50e-9, "deflection_sensitivity_method": "given"},
-                   reader=ONE)
+        run_forces(
+            [JPK_NOCAL],
+            tmp_path / "n.h5",
+            tmp_path / "n.png",
+            cantilever={
+                "spring_constant": 0.1,
+                "deflection_sensitivity": 50e-9,
+                "deflection_sensitivity_method": "given",
+            },
+            reader=ONE,
+        )
     assert not (tmp_path / "n.h5").exists()
 
 
@@ -131,8 +146,11 @@ def _jpk_without_spring_constant(tmp_path):
         for it in zi.infolist():
             data = zi.read(it.filename)
             if it.filename.endswith(".properties"):
-                lines = [ln for ln in data.decode("latin-1").split("\n")
-                         if "conversion.force.scaling.multiplier" not in ln and "conversion.force.defined" not in ln]
+                lines = [
+                    ln
+                    for ln in data.decode("latin-1").split("\n")
+                    if "conversion.force.scaling.multiplier" not in ln and "conversion.force.defined" not in ln
+                ]
                 data = "\n".join(lines).encode("latin-1")
             zo.writestr(it, data)
     return out

@@ -1,4 +1,5 @@
 """Synthetic curves: pull-off recovery, contact-slope InvOLS, statistics, stage output."""
+
 import h5py
 import numpy as np
 import pytest
@@ -76,10 +77,19 @@ def test_stage_end_to_end(tmp_path):
     rng = np.random.default_rng(1)
     F = 12e-9 * (1 + 0.03 * rng.normal(size=8))
     F[3] = 25e-9  # outlier
-    paths = [write_curve_csv(tmp_path / f"c{i}.csv", make_force_curve(f, k, invols, seed=i, tilt=1e5)) for i, f in enumerate(F)]
+    paths = [
+        write_curve_csv(tmp_path / f"c{i}.csv", make_force_curve(f, k, invols, seed=i, tilt=1e5))
+        for i, f in enumerate(F)
+    ]
     out, png = tmp_path / "o.h5", tmp_path / "o.png"
-    cant = {"spring_constant": k, "spring_constant_uncertainty": 0.01, "deflection_sensitivity": invols,
-            "deflection_sensitivity_uncertainty": 1e-9, "deflection_sensitivity_method": "given", "base_dir": str(tmp_path)}
+    cant = {
+        "spring_constant": k,
+        "spring_constant_uncertainty": 0.01,
+        "deflection_sensitivity": invols,
+        "deflection_sensitivity_uncertainty": 1e-9,
+        "deflection_sensitivity_method": "given",
+        "base_dir": str(tmp_path),
+    }
     run_forces(paths, out, png, cantilever=cant, reader={}, tip="T", interval="i0")
     assert png.stat().st_size > 10_000
     with h5py.File(out) as f:
@@ -94,15 +104,68 @@ def test_stage_end_to_end(tmp_path):
         assert f["interval/F_p_mean"][()] == pytest.approx(np.delete(Fp, 3).mean())
         assert f["interval/calibration/k"][()] == k  # soft link to /calibration
         assert f["calibration/u_factor_rel"][()] == pytest.approx(np.hypot(0.05, 0.02), rel=1e-6)
-        assert f["interval/u_F_p_calibration"][()] == pytest.approx(f["interval/F_p_mean"][()] * np.hypot(0.05, 0.02), rel=1e-6)
+        assert f["interval/u_F_p_calibration"][()] == pytest.approx(
+            f["interval/F_p_mean"][()] * np.hypot(0.05, 0.02), rel=1e-6
+        )
         np.testing.assert_allclose(f["curves/delta_m"][()], f["curves/delta_V"][()] * invols)
         assert f["curves/delta_V"].attrs["units"] == "V" and f["curves/F_p"].attrs["units"] == "N"
 
 
 NIST_ESD_DATA = [
-    -0.25, 0.68, 0.94, 1.15, 1.20, 1.26, 1.26, 1.34, 1.38, 1.43, 1.49, 1.49, 1.55, 1.56, 1.58, 1.65, 1.69, 1.70,
-    1.76, 1.77, 1.81, 1.91, 1.94, 1.96, 1.99, 2.06, 2.09, 2.10, 2.14, 2.15, 2.23, 2.24, 2.26, 2.35, 2.37, 2.40,
-    2.47, 2.54, 2.62, 2.64, 2.90, 2.92, 2.92, 2.93, 3.21, 3.26, 3.30, 3.59, 3.68, 4.30, 4.64, 5.34, 5.42, 6.01,
+    -0.25,
+    0.68,
+    0.94,
+    1.15,
+    1.20,
+    1.26,
+    1.26,
+    1.34,
+    1.38,
+    1.43,
+    1.49,
+    1.49,
+    1.55,
+    1.56,
+    1.58,
+    1.65,
+    1.69,
+    1.70,
+    1.76,
+    1.77,
+    1.81,
+    1.91,
+    1.94,
+    1.96,
+    1.99,
+    2.06,
+    2.09,
+    2.10,
+    2.14,
+    2.15,
+    2.23,
+    2.24,
+    2.26,
+    2.35,
+    2.37,
+    2.40,
+    2.47,
+    2.54,
+    2.62,
+    2.64,
+    2.90,
+    2.92,
+    2.92,
+    2.93,
+    3.21,
+    3.26,
+    3.30,
+    3.59,
+    3.68,
+    4.30,
+    4.64,
+    5.34,
+    5.42,
+    6.01,
 ]
 
 

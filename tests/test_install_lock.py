@@ -1,6 +1,7 @@
 """The lock files that `make run` / `make test` install from: every requirement of pyproject.toml
 pinned to one version that satisfies it, every pin with its sha256 hashes, the build backend
 included, and the cluster lock the same versions plus the SLURM plugin."""
+
 import importlib.util
 import re
 import tomllib
@@ -18,9 +19,17 @@ _spec.loader.exec_module(lock_drift)
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 MAIN = lock_drift.read_lock(ROOT / "requirements.lock")
 CLUSTER = lock_drift.read_lock(ROOT / "requirements-cluster.lock")
-LINUX_311 = {"python_version": "3.11", "python_full_version": "3.11.7", "sys_platform": "linux",
-             "platform_system": "Linux", "platform_machine": "x86_64", "implementation_name": "cpython",
-             "platform_python_implementation": "CPython", "os_name": "posix", "extra": ""}
+LINUX_311 = {
+    "python_version": "3.11",
+    "python_full_version": "3.11.7",
+    "sys_platform": "linux",
+    "platform_system": "Linux",
+    "platform_machine": "x86_64",
+    "implementation_name": "cpython",
+    "platform_python_implementation": "CPython",
+    "os_name": "posix",
+    "extra": "",
+}
 
 
 def requirements(*extras):
@@ -53,8 +62,14 @@ def test_every_requirement_is_pinned_to_a_version_that_satisfies_it(lock, extras
             from importlib import metadata
 
             for dep in map(Requirement, metadata.requires(req.name) or []):
-                if dep.marker is not None and dep.marker.evaluate({**LINUX_311, "extra": extra}) and not dep.marker.evaluate(LINUX_311):
-                    assert canonicalize_name(dep.name) in pinned, f"{req.name}[{extra}] needs {dep.name}, not in the lock"
+                if (
+                    dep.marker is not None
+                    and dep.marker.evaluate({**LINUX_311, "extra": extra})
+                    and not dep.marker.evaluate(LINUX_311)
+                ):
+                    assert canonicalize_name(dep.name) in pinned, (
+                        f"{req.name}[{extra}] needs {dep.name}, not in the lock"
+                    )
 
 
 @pytest.mark.parametrize("lock", [MAIN, CLUSTER], ids=["main", "cluster"])
@@ -76,13 +91,15 @@ def test_make_installs_from_the_lock_and_ci_runs_make_test():
     makefile = (ROOT / "Makefile").read_text()
     assert "pip install --quiet --require-hashes -r $(LOCK)" in makefile
     assert "--no-deps --no-build-isolation -e ." in makefile
-    ci = [ln for ln in (ROOT / ".ci" / "run").read_text().splitlines() if ln and not ln.startswith(("#", "set ", "cd "))]
+    ci = [
+        ln for ln in (ROOT / ".ci" / "run").read_text().splitlines() if ln and not ln.startswith(("#", "set ", "cd "))
+    ]
     assert ci == ["make test"]
 
 
 def test_make_test_runs_the_style_checks_before_the_tests():
-    """CI's `make test` runs ruff, snakefmt --check and snakemake --lint (make lint) before pytest,
-    with the tools from the lock."""
+    """CI's `make test` runs ruff format --check, ruff check, snakefmt --check and snakemake --lint
+    (make lint) before pytest, with the tools from the lock."""
     makefile = (ROOT / "Makefile").read_text()
 
     def recipe(target):
@@ -91,17 +108,27 @@ def test_make_test_runs_the_style_checks_before_the_tests():
 
     test, lint = recipe("test"), recipe("lint")
     assert test[0] == "$(MAKE) --no-print-directory lint" and test[1] == "$(BIN)/pytest"
-    assert lint == ["$(BIN)/ruff check .", "$(BIN)/snakefmt --check Snakefile workflow_rules", "$(BIN)/snakemake --lint"]
+    assert lint == [
+        "$(BIN)/ruff format --check .",
+        "$(BIN)/ruff check .",
+        "$(BIN)/snakefmt --check Snakefile workflow_rules",
+        "$(BIN)/snakemake --lint",
+    ]
     pins = pins_for_linux_311(MAIN)
     assert "ruff" in pins and "snakefmt" in pins
 
 
 def test_drift_names_what_differs_from_the_lock(tmp_path):
     lock = tmp_path / "x.lock"
-    lock.write_text("pytest==0.0.1 \\\n    --hash=sha256:" + "a" * 64 + "\n    # via x\n"
-                    "nosuchpackage-xyz==1.0 ; python_version >= '3.0' \\\n    --hash=sha256:" + "b" * 64 + "\n")
+    lock.write_text(
+        "pytest==0.0.1 \\\n    --hash=sha256:" + "a" * 64 + "\n    # via x\n"
+        "nosuchpackage-xyz==1.0 ; python_version >= '3.0' \\\n    --hash=sha256:" + "b" * 64 + "\n"
+    )
     pins = lock_drift.read_lock(lock)
-    assert pins["pytest"][0]["hashes"] == ["a" * 64] and pins["nosuchpackage-xyz"][0]["marker"] == "python_version >= '3.0'"
+    assert (
+        pins["pytest"][0]["hashes"] == ["a" * 64]
+        and pins["nosuchpackage-xyz"][0]["marker"] == "python_version >= '3.0'"
+    )
     lines = lock_drift.drift(lock)
     assert any(ln.startswith("pytest 0.0.1 -> ") for ln in lines)
     assert "nosuchpackage-xyz 1.0 pinned, not installed" in lines
@@ -109,8 +136,11 @@ def test_drift_names_what_differs_from_the_lock(tmp_path):
 
 # Licences GPL-3.0-or-later cannot take in (README "Licence"); matched in each locked package's
 # licence metadata (expression, licence text's first line, classifiers).
-INCOMPATIBLE = re.compile(r"GPL-2\.0-only|GPLv2 only|GPL-2\.0\b(?!.*or.later)|SSPL|BUSL|Business Source|Proprietary|"
-                          r"Commercial|Non.?Commercial|CC-BY-NC|Elastic License", re.IGNORECASE)
+INCOMPATIBLE = re.compile(
+    r"GPL-2\.0-only|GPLv2 only|GPL-2\.0\b(?!.*or.later)|SSPL|BUSL|Business Source|Proprietary|"
+    r"Commercial|Non.?Commercial|CC-BY-NC|Elastic License",
+    re.IGNORECASE,
+)
 
 
 def test_licence_is_gpl3_or_later_and_no_locked_dependency_forbids_it():

@@ -3,6 +3,7 @@
 Reference numbers are computed here independently of pipeline.mechanics where possible
 (Eq. 12 closed form, Maugis relation lambda = 2 (9/(16 pi))^(1/3) Lambda for n = 2).
 """
+
 import h5py
 import numpy as np
 import pytest
@@ -33,11 +34,32 @@ def _eq12_w(F, n, Q, h):
 @pytest.fixture(scope="module")
 def paperlike(tmp_path_factory):
     d = tmp_path_factory.mktemp("inv_paperlike")
-    fits, forces, cfg = write_synthetic_inputs(d, W_A=0.0467, h=4.6e-9, E_star=E_STAR, intervals=_intervals([2, 3, 4.5, 6]),
-                                               u_k=0.01, k=0.2, u_invols=1e-9, seed=5)
+    fits, forces, cfg = write_synthetic_inputs(
+        d,
+        W_A=0.0467,
+        h=4.6e-9,
+        E_star=E_STAR,
+        intervals=_intervals([2, 3, 4.5, 6]),
+        u_k=0.01,
+        k=0.2,
+        u_invols=1e-9,
+        seed=5,
+    )
     out = d / "inv.h5"
-    run_inversion(fits, forces, out, intervals=cfg, E_star=E_STAR, u_E_star=5e9, h_grid=H_GRID,
-                  laws=["dugdale", "tri2"], solver_mode="rigid", mc_samples=300, seed=11, tip="A")
+    run_inversion(
+        fits,
+        forces,
+        out,
+        intervals=cfg,
+        E_star=E_STAR,
+        u_E_star=5e9,
+        h_grid=H_GRID,
+        laws=["dugdale", "tri2"],
+        solver_mode="rigid",
+        mc_samples=300,
+        seed=11,
+        tip="A",
+    )
     return fits, forces, cfg, out
 
 
@@ -58,7 +80,7 @@ def test_clip_n_policy():
     R, S = 30e-9, 1.0
     assert clip_n(2.3, 1.3 * np.log(R), S, 0.02) == (2.3, 1.3 * np.log(R), "ok")
     n, lq, flag = clip_n(1.97, 0.97 * np.log(R), S, 0.02)
-    assert flag == "n_clipped_to_2" and n == 2.0 and lq == pytest.approx(np.log(R))   # keeps R: Q(2) = R
+    assert flag == "n_clipped_to_2" and n == 2.0 and lq == pytest.approx(np.log(R))  # keeps R: Q(2) = R
     # S != 1: ln Q = (n-2) ln S + (n-1) ln R  ->  clipped ln Q = ln R
     S2 = 2.0
     n, lq, flag = clip_n(1.98, -0.02 * np.log(S2) + 0.98 * np.log(R), S2, 0.01)
@@ -101,27 +123,63 @@ def test_outputs_and_units(paperlike):
 def test_systematic_errors_are_shared(tmp_path):
     """k/InvOLS/E* are drawn once per sample for the tip: with no statistical noise every
     interval's W_A sample is its central value times the same calibration factor (rigid)."""
-    fits, forces, cfg = write_synthetic_inputs(tmp_path, W_A=0.05, h=3e-9, E_star=E_STAR, intervals=_intervals([2, 3, 5]),
-                                               rel_sd_curve=0.0, sigma_n=0.0, sigma_lnR=0.0, u_k=0.02, k=0.2,
-                                               u_invols=2e-9, perturb=False, seed=1)
+    fits, forces, cfg = write_synthetic_inputs(
+        tmp_path,
+        W_A=0.05,
+        h=3e-9,
+        E_star=E_STAR,
+        intervals=_intervals([2, 3, 5]),
+        rel_sd_curve=0.0,
+        sigma_n=0.0,
+        sigma_lnR=0.0,
+        u_k=0.02,
+        k=0.2,
+        u_invols=2e-9,
+        perturb=False,
+        seed=1,
+    )
     out = tmp_path / "inv.h5"
-    run_inversion(fits, forces, out, intervals=cfg, E_star=E_STAR, u_E_star=10e9, h_grid=H_GRID,
-                  laws=["dugdale"], solver_mode="rigid", mc_samples=200, seed=3)
+    run_inversion(
+        fits,
+        forces,
+        out,
+        intervals=cfg,
+        E_star=E_STAR,
+        u_E_star=10e9,
+        h_grid=H_GRID,
+        laws=["dugdale"],
+        solver_mode="rigid",
+        mc_samples=200,
+        seed=3,
+    )
     inv = load_inversion(out)
     cal = inv["systematic"]["cal_factor"]
     assert np.std(cal) == pytest.approx(np.hypot(0.1, 0.04), rel=0.2)
     for nm in ("i0", "i1", "i2"):
         d = inv["intervals"][nm]["laws"]["dugdale"]
-        np.testing.assert_allclose(d["W_A_samples"] / d["W_A"][None, :], np.repeat(cal[:, None], H_GRID.size, 1), rtol=1e-5)
+        np.testing.assert_allclose(
+            d["W_A_samples"] / d["W_A"][None, :], np.repeat(cal[:, None], H_GRID.size, 1), rtol=1e-5
+        )
 
 
 def test_seeded_and_reproducible(tmp_path, paperlike):
     fits, forces, cfg, out = paperlike
-    kw = dict(intervals=cfg, E_star=E_STAR, u_E_star=5e9, h_grid=H_GRID, laws=["dugdale", "tri2"], solver_mode="rigid",
-              mc_samples=300, tip="A")
+    kw = dict(
+        intervals=cfg,
+        E_star=E_STAR,
+        u_E_star=5e9,
+        h_grid=H_GRID,
+        laws=["dugdale", "tri2"],
+        solver_mode="rigid",
+        mc_samples=300,
+        tip="A",
+    )
     run_inversion(fits, forces, tmp_path / "a.h5", seed=11, **kw)
     run_inversion(fits, forces, tmp_path / "b.h5", seed=12, **kw)
-    a, b, ref = (load_inversion(p)["intervals"]["i2"]["laws"]["dugdale"]["W_A_samples"] for p in (tmp_path / "a.h5", tmp_path / "b.h5", out))
+    a, b, ref = (
+        load_inversion(p)["intervals"]["i2"]["laws"]["dugdale"]["W_A_samples"]
+        for p in (tmp_path / "a.h5", tmp_path / "b.h5", out)
+    )
     np.testing.assert_array_equal(a, ref)
     assert not np.allclose(a, b)
 
@@ -130,12 +188,34 @@ def test_seeded_and_reproducible(tmp_path, paperlike):
 def elastic(tmp_path_factory):
     """W_A = 1 J/m^2, h = 0.5 nm, E* = 40 GPa, R = 10 nm: Lambda above Eq. 13 at the true h."""
     d = tmp_path_factory.mktemp("inv_elastic")
-    fits, forces, cfg = write_synthetic_inputs(d, W_A=1.0, h=0.5e-9, E_star=40e9, intervals=_intervals([2, 4], R=10e-9),
-                                               perturb=False, rel_sd_curve=0.02, sigma_n=0.01, sigma_lnR=0.005, seed=2)
+    fits, forces, cfg = write_synthetic_inputs(
+        d,
+        W_A=1.0,
+        h=0.5e-9,
+        E_star=40e9,
+        intervals=_intervals([2, 4], R=10e-9),
+        perturb=False,
+        rel_sd_curve=0.02,
+        sigma_n=0.01,
+        sigma_lnR=0.005,
+        seed=2,
+    )
     out = d / "inv.h5"
     h = np.geomspace(0.1e-9, 5e-9, 90)
-    run_inversion(fits, forces, out, intervals=cfg, E_star=40e9, u_E_star=1e9, h_grid=h, laws=["dugdale"],
-                  solver_mode="auto", mc_samples=200, seed=1, mc_h_points=30)
+    run_inversion(
+        fits,
+        forces,
+        out,
+        intervals=cfg,
+        E_star=40e9,
+        u_E_star=1e9,
+        h_grid=h,
+        laws=["dugdale"],
+        solver_mode="auto",
+        mc_samples=200,
+        seed=1,
+        mc_h_points=30,
+    )
     return fits, forces, cfg, out
 
 
@@ -146,8 +226,8 @@ def test_auto_mode_records_model_and_regime(elastic):
     d = inv["intervals"]["i1"]["laws"]["dugdale"]
     used = np.asarray(d["model_used"]).astype(str)
     j = int(np.argmin(abs(h - 0.5e-9)))
-    assert used[j] == "mdn"                                    # the full model at the true h
-    lam_b = -0.002194 * 16 + 0.067185 * 4 + 0.022056           # Eq. 13 at n = 4
+    assert used[j] == "mdn"  # the full model at the true h
+    lam_b = -0.002194 * 16 + 0.067185 * 4 + 0.022056  # Eq. 13 at n = 4
     np.testing.assert_allclose(d["Lambda_boundary"], lam_b, rtol=1e-9)
     np.testing.assert_array_equal(d["rigid_valid"], d["Lambda"] < lam_b)
     assert d["Lambda"][j] > lam_b
@@ -171,8 +251,14 @@ def test_mc_grid_interpolation_is_accurate(elastic):
     cal = inv["systematic"]["cal_factor"]
     es = inv["systematic"]["E_star"]
     s = slice(0, 20)
-    direct = mech.work_of_adhesion((dr["F_p_mean"] * cal)[s, None], dr["n"][s, None], np.exp(dr["ln_Q"])[s, None],
-                                   es[s, None], h[None, :], model="auto")
+    direct = mech.work_of_adhesion(
+        (dr["F_p_mean"] * cal)[s, None],
+        dr["n"][s, None],
+        np.exp(dr["ln_Q"])[s, None],
+        es[s, None],
+        h[None, :],
+        model="auto",
+    )
     interp = inv["intervals"]["i1"]["laws"]["dugdale"]["W_A_samples"][s]
     rel = np.abs(interp / direct - 1)
     # away from the auto-mode switch (a <= 5 % step by design) interpolation is < 0.2 %
@@ -190,17 +276,30 @@ def test_interp_helpers():
     assert np.array_equal(mc_grid_index(40, 64), np.arange(40))
     x = np.geomspace(1, 10, 5)
     xf = np.geomspace(1, 10, 17)
-    np.testing.assert_allclose(interp_loglog(x, 3 * x**0.7, xf), 3 * xf**0.7, rtol=1e-12)   # power laws exact
+    np.testing.assert_allclose(interp_loglog(x, 3 * x**0.7, xf), 3 * xf**0.7, rtol=1e-12)  # power laws exact
 
 
 def test_n_below_2_does_not_crash(tmp_path):
     ivs = _intervals([2, 4]) + [dict(name="bad", n=2.0, R=30e-9)]
-    fits, forces, cfg = write_synthetic_inputs(tmp_path, W_A=0.05, h=3e-9, E_star=E_STAR, intervals=ivs, perturb=False, seed=1)
-    with h5py.File(fits["bad"], "r+") as f:       # a fit far below 2: unusable, not a crash
+    fits, forces, cfg = write_synthetic_inputs(
+        tmp_path, W_A=0.05, h=3e-9, E_star=E_STAR, intervals=ivs, perturb=False, seed=1
+    )
+    with h5py.File(fits["bad"], "r+") as f:  # a fit far below 2: unusable, not a crash
         f["fit/n"][()] = 1.6
     out = tmp_path / "inv.h5"
-    run_inversion(fits, forces, out, intervals=cfg, E_star=E_STAR, u_E_star=0.0, h_grid=H_GRID, laws=["dugdale"],
-                  solver_mode="auto", mc_samples=50, seed=1)
+    run_inversion(
+        fits,
+        forces,
+        out,
+        intervals=cfg,
+        E_star=E_STAR,
+        u_E_star=0.0,
+        h_grid=H_GRID,
+        laws=["dugdale"],
+        solver_mode="auto",
+        mc_samples=50,
+        seed=1,
+    )
     inv = load_inversion(out)
     assert inv["intervals"]["bad"]["n_flag"] == "n_below_2"
     assert np.all(np.isnan(inv["intervals"]["bad"]["laws"]["dugdale"]["W_A"]))
@@ -212,7 +311,9 @@ def test_bad_arguments(paperlike):
     with pytest.raises(ValueError, match="traction law"):
         run_inversion(fits, forces, "/tmp/x.h5", intervals=cfg, E_star=E_STAR, u_E_star=0, h_grid=H_GRID, laws=["foo"])
     with pytest.raises(ValueError, match="solver_mode"):
-        run_inversion(fits, forces, "/tmp/x.h5", intervals=cfg, E_star=E_STAR, u_E_star=0, h_grid=H_GRID, solver_mode="x")
+        run_inversion(
+            fits, forces, "/tmp/x.h5", intervals=cfg, E_star=E_STAR, u_E_star=0, h_grid=H_GRID, solver_mode="x"
+        )
 
 
 def _add_paraboloid_fit(path, R, u_lnR=0.005):
@@ -234,23 +335,46 @@ def test_uncertain_reference_is_used_as_a_paraboloid(tmp_path):
     from pipeline.inversion.shape import shape_for_inversion
 
     R = 30e-9
-    fits, forces, cfg = write_synthetic_inputs(tmp_path, W_A=0.05, h=3e-9, E_star=E_STAR, intervals=_intervals([2, 4, 5]),
-                                               perturb=False, seed=2)
-    with h5py.File(fits["i0"], "r+") as f:   # the free fit: n 1.70 +- 0.45 and an R 12 % high
+    fits, forces, cfg = write_synthetic_inputs(
+        tmp_path, W_A=0.05, h=3e-9, E_star=E_STAR, intervals=_intervals([2, 4, 5]), perturb=False, seed=2
+    )
+    with h5py.File(fits["i0"], "r+") as f:  # the free fit: n 1.70 +- 0.45 and an R 12 % high
         f["fit/n"][()] = 1.70
         f["fit/cov_n_lnQ"][()] = np.diag([0.45**2, 0.05**2])
         f["fit/R"][()] = 1.12 * R
         f["fit/ln_Q"][()] = 0.7 * np.log(1.12 * R)
     out_old = tmp_path / "old.h5"
-    run_inversion(fits, forces, out_old, intervals=cfg, E_star=E_STAR, u_E_star=0.0, h_grid=H_GRID, laws=["dugdale"],
-                  solver_mode="rigid", mc_samples=200, seed=1)
+    run_inversion(
+        fits,
+        forces,
+        out_old,
+        intervals=cfg,
+        E_star=E_STAR,
+        u_E_star=0.0,
+        h_grid=H_GRID,
+        laws=["dugdale"],
+        solver_mode="rigid",
+        mc_samples=200,
+        seed=1,
+    )
     _add_paraboloid_fit(fits["i0"], R)
     out = tmp_path / "inv.h5"
-    run_inversion(fits, forces, out, intervals=cfg, E_star=E_STAR, u_E_star=0.0, h_grid=H_GRID, laws=["dugdale"],
-                  solver_mode="rigid", mc_samples=200, seed=1)
+    run_inversion(
+        fits,
+        forces,
+        out,
+        intervals=cfg,
+        E_star=E_STAR,
+        u_E_star=0.0,
+        h_grid=H_GRID,
+        laws=["dugdale"],
+        solver_mode="rigid",
+        mc_samples=200,
+        seed=1,
+    )
     old, new = load_inversion(out_old)["intervals"]["i0"], load_inversion(out)["intervals"]["i0"]
     j = np.argmin(abs(H_GRID - 3e-9))
-    assert abs(old["laws"]["dugdale"]["W_A"][j] / 0.05 - 1) > 0.08      # the clipped free fit: far off
+    assert abs(old["laws"]["dugdale"]["W_A"][j] / 0.05 - 1) > 0.08  # the clipped free fit: far off
     assert new["laws"]["dugdale"]["W_A"][j] == pytest.approx(0.05, rel=0.01)
     with h5py.File(out) as f:
         g = f["intervals/i0"]

@@ -28,7 +28,10 @@ def maugis_pulloff(lam):
     ts = np.linspace(-20.0, 25.0, 451)
     k = int(np.argmin(maugis_pbar(ts, lam)))
     res = minimize_scalar(
-        maugis_pbar, bounds=(ts[max(k - 1, 0)], ts[min(k + 1, 450)]), args=(lam,), method="bounded",
+        maugis_pbar,
+        bounds=(ts[max(k - 1, 0)], ts[min(k + 1, 450)]),
+        args=(lam,),
+        method="bounded",
         options={"xatol": 1e-12},
     )
     return -min(res.fun, maugis_pbar(ts[k], lam))
@@ -86,7 +89,9 @@ def test_rigid_limit_is_eq12(n):
     assert abs(ratio[1] - 1) <= abs(ratio[0] - 1) + 1e-13
     # dimensional Eq. 12
     Q, E, W, h = M.q_from_rs(n, 30e-9, 1.3), 160e9, 0.1, 2e-9
-    assert M.pulloff_force(n, Q, E, W, h, model="rigid") == pytest.approx(W / h * np.pi * (n * h * Q) ** (2 / n), rel=1e-13)
+    assert M.pulloff_force(n, Q, E, W, h, model="rigid") == pytest.approx(
+        W / h * np.pi * (n * h * Q) ** (2 / n), rel=1e-13
+    )
 
 
 def _jkr_numeric(n):

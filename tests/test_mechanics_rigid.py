@@ -28,9 +28,10 @@ def force(D, n, law):
     """F(D)/(pi (nQ)^(2/n)) = int sigma(D + z) d(z^(2/n)) = int_0^inf sigma(D + w^(n/2)) dw."""
     f = lambda w: sigma(D + w ** (n / 2), law)
     if law == "lj":
-        return quad(f, 0, 1, epsabs=1e-14, epsrel=1e-13, limit=200)[0] + quad(
-            f, 1, np.inf, epsabs=1e-14, epsrel=1e-13, limit=200
-        )[0]
+        return (
+            quad(f, 0, 1, epsabs=1e-14, epsrel=1e-13, limit=200)[0]
+            + quad(f, 1, np.inf, epsabs=1e-14, epsrel=1e-13, limit=200)[0]
+        )
     top = {"dugdale": 1.0, "tri1": 1.0, "tri2": 2.0}[law]
     if D >= top:
         return 0.0

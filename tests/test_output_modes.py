@@ -1,5 +1,6 @@
 """Outputs a lab can share: files written atomically (temporary file + rename) get the mode
 ``open()`` would give them, 0666 less the umask, not mkstemp's 0600."""
+
 import os
 
 import numpy as np

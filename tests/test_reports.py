@@ -1,4 +1,5 @@
 """Reports (per-tip CSV, results/summary.csv) and the stage 4-5 figures."""
+
 import csv
 
 import numpy as np
@@ -16,12 +17,37 @@ LAWS = ["dugdale", "lj", "tri1", "tri2"]
 
 
 def _tip(tmp, tip, W, R, E, ns, extra=()):
-    ivs = [dict(name="s000", n=ns[0], R=R, reference=True)] + [dict(name=f"s{i:03d}", n=n, R=R) for i, n in enumerate(ns[1:], 1)]
-    fits, forces, cfg = write_synthetic_inputs(tmp / tip, W_A=W, h=4.6e-9, E_star=E, intervals=ivs + list(extra), seed=3,
-                                               sigma_n=0.01, sigma_lnR=0.005, rel_sd_curve=0.04, n_curves=64, u_k=0.004)
+    ivs = [dict(name="s000", n=ns[0], R=R, reference=True)] + [
+        dict(name=f"s{i:03d}", n=n, R=R) for i, n in enumerate(ns[1:], 1)
+    ]
+    fits, forces, cfg = write_synthetic_inputs(
+        tmp / tip,
+        W_A=W,
+        h=4.6e-9,
+        E_star=E,
+        intervals=ivs + list(extra),
+        seed=3,
+        sigma_n=0.01,
+        sigma_lnR=0.005,
+        rel_sd_curve=0.04,
+        n_curves=64,
+        u_k=0.004,
+    )
     inv = tmp / tip / "inversion.h5"
-    run_inversion(fits, forces, inv, intervals=cfg, E_star=E, u_E_star=0.05 * E, h_grid=np.geomspace(0.2e-9, 20e-9, 70),
-                  laws=LAWS, solver_mode="auto", mc_samples=300, seed=7, tip=tip)
+    run_inversion(
+        fits,
+        forces,
+        inv,
+        intervals=cfg,
+        E_star=E,
+        u_E_star=0.05 * E,
+        h_grid=np.geomspace(0.2e-9, 20e-9, 70),
+        laws=LAWS,
+        solver_mode="auto",
+        mc_samples=300,
+        seed=7,
+        tip=tip,
+    )
     rng = tmp / tip / "adhesion_range.h5"
     run_adhesion_range(inv, rng, tmp / tip / f"{tip}_report.csv", tmp / tip, tip=tip)
     return rng
@@ -75,9 +101,25 @@ def test_tip_report(two_tips):
     rows = {r["interval"]: r for r in _rows(path)}
     assert list(rows) == ["s000", "s001", "s002", "s003", "s004", "s900"]
     assert "nan" not in path.read_text().lower()
-    for col in ("scans", "n", "u_n", "R_nm", "S", "F_p_nN", "u_F_p_nN", "n_curves", "W_A_dugdale_mJ_per_m2",
-                "h_dugdale_nm", "h_dugdale_low_nm", "h_dugdale_high_nm", "h_dugdale_status", "Lambda_at_estimate",
-                "rigid_valid", "h_tri2_full_range_nm", "z0_lj_nm"):
+    for col in (
+        "scans",
+        "n",
+        "u_n",
+        "R_nm",
+        "S",
+        "F_p_nN",
+        "u_F_p_nN",
+        "n_curves",
+        "W_A_dugdale_mJ_per_m2",
+        "h_dugdale_nm",
+        "h_dugdale_low_nm",
+        "h_dugdale_high_nm",
+        "h_dugdale_status",
+        "Lambda_at_estimate",
+        "rigid_valid",
+        "h_tri2_full_range_nm",
+        "z0_lj_nm",
+    ):
         assert col in rows["s000"], col
     assert rows["s000"]["h_dugdale_status"] == "reference" and rows["s000"]["h_dugdale_nm"] == ""
     assert rows["s900"]["h_dugdale_status"] == "n_too_close_to_2" and rows["s900"]["h_dugdale_nm"] == ""

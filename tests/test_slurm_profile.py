@@ -4,6 +4,7 @@ The profile must name every rule of the workflow and only those, its per-rule re
 the ones scripts/slurm_resources.py derives from the benchmark table kept beside it, and a failed
 SLURM job must be described from its log (reason, rule, tip, interval).
 """
+
 import importlib.util
 import re
 import subprocess
@@ -59,10 +60,12 @@ def test_resource_formula_on_hand_computed_numbers(tmp_path):
     mod = load_script()
     # one rule per layout of the benchmark folder: <rule>.tsv, <tip>/<rule>.tsv, <tip>/<rule>/<iv>.tsv
     head = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
-    files = {"summary.tsv": "0.5\t0:00:00\t50\t1\t1\t1\t0\t0\t0\t0.4\n",
-             "tA/inversion.tsv": "12.0\t0:00:12\t300.0\t1\t1\t1\t0\t0\t0\t11.9\n",
-             "tA/profiles/s1.tsv": "2.0\t0:00:02\t150\t1\t1\t1\t0\t0\t0\t1.9\n",
-             "tB/profiles/s1.tsv": "100.0\t0:01:40\t1250\t1\t1\t1\t0\t0\t0\t390\n"}
+    files = {
+        "summary.tsv": "0.5\t0:00:00\t50\t1\t1\t1\t0\t0\t0\t0.4\n",
+        "tA/inversion.tsv": "12.0\t0:00:12\t300.0\t1\t1\t1\t0\t0\t0\t11.9\n",
+        "tA/profiles/s1.tsv": "2.0\t0:00:02\t150\t1\t1\t1\t0\t0\t0\t1.9\n",
+        "tB/profiles/s1.tsv": "100.0\t0:01:40\t1250\t1\t1\t1\t0\t0\t0\t390\n",
+    }
     for name, row in files.items():
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_text(head + row)
@@ -85,12 +88,12 @@ rule {rule}:
     resources: tmpdir=<TBD>, mem_mb=900
 """
 _ENDINGS = {
-    "its time limit was reached (runtime)":
-        "slurmstepd-vm: error: *** JOB 71 ON vm CANCELLED " "AT 2026-11-24T19:37:37 DUE TO TIME LIMIT ***\n",
-    "it ran out of memory (mem_mb)":
-        "srun: error: vm: task 0: Out Of Memory\nslurmstepd-vm: " "error: Detected 1 oom-kill event(s) in StepId=4.0.\n",
-    "it was cancelled (scancel or an administrator)":
-        "slurmstepd-vm: error: *** JOB 80 ON vm " "CANCELLED AT 2026-11-24T20:01:02 ***\n",
+    "its time limit was reached (runtime)": "slurmstepd-vm: error: *** JOB 71 ON vm CANCELLED "
+    "AT 2026-11-24T19:37:37 DUE TO TIME LIMIT ***\n",
+    "it ran out of memory (mem_mb)": "srun: error: vm: task 0: Out Of Memory\nslurmstepd-vm: "
+    "error: Detected 1 oom-kill event(s) in StepId=4.0.\n",
+    "it was cancelled (scancel or an administrator)": "slurmstepd-vm: error: *** JOB 80 ON vm "
+    "CANCELLED AT 2026-11-24T20:01:02 ***\n",
     "its command failed": "Error in rule forces:\n    message: None\n",
 }
 
@@ -107,11 +110,14 @@ def test_failed_cluster_jobs_reads_the_slurm_logs_named_in_the_run_log(tmp_path)
     slurm_log.write_text(_JOB.format(rule="profiles", iv="scan010") + _ENDINGS["its time limit was reached (runtime)"])
     gone = tmp_path / ".snakemake" / "slurm_logs" / "rule_summary" / "72.log"  # deleted: job succeeded
     run_log = tmp_path / "run.log"
-    run_log.write_text(f"Error in group tip:\n    log: {slurm_log} (check log file(s) for error details)\n"
-                       f"    log: {slurm_log} (again)\nJob 1 submitted (log: {gone}).\n")
+    run_log.write_text(
+        f"Error in group tip:\n    log: {slurm_log} (check log file(s) for error details)\n"
+        f"    log: {slurm_log} (again)\nJob 1 submitted (log: {gone}).\n"
+    )
     assert failed_cluster_jobs(run_log) == [
         "SLURM job 71 failed: its time limit was reached (runtime), while running rule profiles "
-        f"(tip=tipB_Si, interval=scan010). SLURM log: {slurm_log}"]
+        f"(tip=tipB_Si, interval=scan010). SLURM log: {slurm_log}"
+    ]
     assert failed_cluster_jobs(tmp_path / "missing.log") == []
 
 

@@ -1,5 +1,6 @@
 """A run killed with SIGKILL leaves Snakemake's lock behind; `python -m pipeline unlock-stale`
 (what `make run` does first) removes it, and never the lock of a run that is still alive."""
+
 import json
 import os
 import signal
@@ -52,8 +53,13 @@ def wait_for(condition, timeout=60.0):
 
 def test_lock_of_a_killed_run_is_removed_and_a_live_ones_kept(tmp_path):
     (tmp_path / "Snakefile").write_text(SNAKEFILE)
-    live = subprocess.Popen([sys.executable, "-m", "snakemake", "--cores", "1"], cwd=tmp_path, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    live = subprocess.Popen(
+        [sys.executable, "-m", "snakemake", "--cores", "1"],
+        cwd=tmp_path,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         wait_for(lambda: list((tmp_path / RUNS_DIR).glob("*.json")) and locks(tmp_path))
         proc = unlock_stale(tmp_path)  # the run is alive: its lock stays
@@ -91,12 +97,15 @@ def dead_pid():
     return proc.pid, time.time() - 5.0
 
 
-@pytest.mark.parametrize("case, state, words", [
-    ("no record", "unknown", "no record of the run that took it; if no Snakemake runs in"),
-    ("other host", "unknown", "started on far-away-node"),
-    ("lock newer than the dead run", "unknown", "no record of the run that took it"),
-    ("dead run took it", "stale", "has ended without unlocking it"),
-])
+@pytest.mark.parametrize(
+    "case, state, words",
+    [
+        ("no record", "unknown", "no record of the run that took it; if no Snakemake runs in"),
+        ("other host", "unknown", "started on far-away-node"),
+        ("lock newer than the dead run", "unknown", "no record of the run that took it"),
+        ("dead run took it", "stale", "has ended without unlocking it"),
+    ],
+)
 def test_only_a_lock_taken_by_a_run_known_dead_is_stale(tmp_path, case, state, words):
     pid, created = dead_pid()
     rec = {"host": socket.gethostname(), "pid": pid, "create_time": created, "started": created + 1.0}

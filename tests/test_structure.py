@@ -1,5 +1,6 @@
 """The package's shape: no import cycles (between modules, and between the stage packages), no
 stage importing the synthetic-data package, and stage jobs that load only what they use."""
+
 import ast
 import os
 import subprocess
@@ -38,7 +39,9 @@ def imports_of(name: str, path: Path, modules: dict) -> set:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                base = ".".join(
+                    package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else [])
+                )
             targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
         else:
             continue
@@ -64,7 +67,7 @@ def find_cycle(edges: dict):
         stack.append(node)
         for nxt in sorted(edges.get(node, ())):
             if state.get(nxt) == "open":
-                return stack[stack.index(nxt):] + [nxt]
+                return stack[stack.index(nxt) :] + [nxt]
             if nxt not in state and (cycle := visit(nxt)):
                 return cycle
         state[node] = "done"
@@ -110,10 +113,16 @@ def test_no_import_cycle_between_stage_packages():
 
 def test_no_stage_imports_the_synthetic_data():
     graph = import_graph()
-    found = {(m, t) for m, imported in graph.items() for t, _ in imported
-             if t.startswith("pipeline.synth") and not m.startswith("pipeline.synth")}
+    found = {
+        (m, t)
+        for m, imported in graph.items()
+        for t, _ in imported
+        if t.startswith("pipeline.synth") and not m.startswith("pipeline.synth")
+    }
     assert found <= SYNTH_IMPORTS_ALLOWED, sorted(found - SYNTH_IMPORTS_ALLOWED)
-    assert found == SYNTH_IMPORTS_ALLOWED, f"no longer imported, remove from SYNTH_IMPORTS_ALLOWED: {SYNTH_IMPORTS_ALLOWED - found}"
+    assert found == SYNTH_IMPORTS_ALLOWED, (
+        f"no longer imported, remove from SYNTH_IMPORTS_ALLOWED: {SYNTH_IMPORTS_ALLOWED - found}"
+    )
     cli = {t for t, top in graph["pipeline.cli"] if t.startswith("pipeline.synth")}
     assert cli and not any(top for t, top in graph["pipeline.cli"] if t.startswith("pipeline.synth"))
 
@@ -147,18 +156,31 @@ def test_no_function_over_60_lines():
     assert not long, long
 
 
-@pytest.mark.parametrize("modules, not_loaded", [
-    (["pipeline.cli"], ["matplotlib", "scipy", "h5py"]),
-    (["pipeline.forces.stage"], ["matplotlib", "pipeline.mechanics"]),
-    (["pipeline.inversion.stage"], ["matplotlib", "scipy.stats", "pipeline.forces.calibration"]),
-    (["pipeline.adhesion_range.stage", "pipeline.adhesion_range.report"], ["matplotlib", "scipy.stats", "pipeline.mechanics"]),
-])
+@pytest.mark.parametrize(
+    "modules, not_loaded",
+    [
+        (["pipeline.cli"], ["matplotlib", "scipy", "h5py"]),
+        (["pipeline.forces.stage"], ["matplotlib", "pipeline.mechanics"]),
+        (["pipeline.inversion.stage"], ["matplotlib", "scipy.stats", "pipeline.forces.calibration"]),
+        (
+            ["pipeline.adhesion_range.stage", "pipeline.adhesion_range.report"],
+            ["matplotlib", "scipy.stats", "pipeline.mechanics"],
+        ),
+    ],
+)
 def test_a_stage_loads_only_what_it_uses(modules, not_loaded):
     """Importing a stage (what its job does before it works) loads no plotting library (its figure
     function imports that when it draws) and no science it does not use."""
-    code = (f"import sys, importlib\nfor m in {modules!r}: " f"importlib.import_module(m)\nprint([k for k in {not_loaded!r} if k in sys.modules])")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(PACKAGE.parent)})
+    code = (
+        f"import sys, importlib\nfor m in {modules!r}: "
+        f"importlib.import_module(m)\nprint([k for k in {not_loaded!r} if k in sys.modules])"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(PACKAGE.parent)},
+    )
     assert proc.returncode == 0, proc.stderr[-1500:]
     assert proc.stdout.strip() == "[]"
 

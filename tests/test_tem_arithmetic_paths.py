@@ -16,6 +16,7 @@ explain), measured again on AMD EPYC: n within 0.0022 (clean coated) and 0.0004,
 35 % the test allows.  ``make test`` also runs the TEM tests on that
 path.
 """
+
 from __future__ import annotations
 
 import json
@@ -27,13 +28,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ALT_PATH = {"OPENBLAS_CORETYPE": "Prescott", "NPY_DISABLE_CPU_FEATURES": "X86_V3,X86_V4,AVX512_ICL,AVX512_SPR",
-            "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+ALT_PATH = {
+    "OPENBLAS_CORETYPE": "Prescott",
+    "NPY_DISABLE_CPU_FEATURES": "X86_V3,X86_V4,AVX512_ICL,AVX512_SPR",
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+}
 
 # (n, pixel size, blur px, edge SNR, rotation deg, coating m, keywords)
 CASES = {
-    "clean coated n 4, flat face (the case that failed)": (4.0, 0.25e-9, 0.5, np.inf, -8.0, 1.5e-9,
-                                                             dict(orientation="up", seed=3, R=20e-9, shape=(384, 384))),
+    "clean coated n 4, flat face (the case that failed)": (
+        4.0,
+        0.25e-9,
+        0.5,
+        np.inf,
+        -8.0,
+        1.5e-9,
+        dict(orientation="up", seed=3, R=20e-9, shape=(384, 384)),
+    ),
     "oxide n 4, SNR 20": (4.0, 0.2e-9, 1.0, 20.0, 3.0, 1.5e-9, dict(orientation="down", seed=11)),
     "clean oxide n 6, 0.5 nm px": (6.0, 0.5e-9, 2.0, np.inf, 7.0, 1.5e-9, dict(orientation="down", seed=208)),
 }
@@ -51,15 +63,17 @@ def fit_cases() -> dict:
     return out
 
 
-@pytest.mark.skipif(os.environ.get("OPENBLAS_CORETYPE") == ALT_PATH["OPENBLAS_CORETYPE"],
-                    reason="already on the second arithmetic path")
+@pytest.mark.skipif(
+    os.environ.get("OPENBLAS_CORETYPE") == ALT_PATH["OPENBLAS_CORETYPE"], reason="already on the second arithmetic path"
+)
 def test_tem_fit_is_the_same_on_a_second_arithmetic_path():
     here = fit_cases()
     root = Path(__file__).resolve().parents[1]
     # this checkout's pipeline (the venv may hold an editable install of another checkout)
     env = {**os.environ, **ALT_PATH, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve())], env=env, cwd=root,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, str(Path(__file__).resolve())], env=env, cwd=root, capture_output=True, text=True, timeout=600
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     there = json.loads(proc.stdout.strip().splitlines()[-1])
     for name, a in here.items():

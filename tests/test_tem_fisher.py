@@ -5,6 +5,7 @@ spatial derivative, the background entry against its closed form, Monte Carlo
 scatter of efficient estimators against the bound, and the renderer against the
 expected image it is built on.
 """
+
 from __future__ import annotations
 
 import math
@@ -29,7 +30,7 @@ def test_apex_column_derivative_is_minus_spatial_derivative(blur):
     img, d = res.info["expected"], res.info["derivatives"]["apex_col"]
     dcol = (-img[:, 4:] + 8 * img[:, 3:-1] - 8 * img[:, 1:-3] + img[:, :-4]) / 12.0
     m = int(4 * blur) + 3
-    err = np.abs(d[:, 2:-2] + dcol)[m:-m, m - 2:-(m - 2)]
+    err = np.abs(d[:, 2:-2] + dcol)[m:-m, m - 2 : -(m - 2)]
     assert err.max() < 0.03 * np.abs(d).max()
     assert np.abs(d).max() > 0.05  # a real edge signal (relative intensity per px)
 
@@ -38,8 +39,16 @@ def test_background_fisher_closed_form():
     """lambda_p = b N g_p (g: expected image at b = 1, N: background dose):
     d lambda_p/db = N g_p, so F_bb = sum_p (N g_p)^2 / (b N g_p) = (N / b) sum_p g_p."""
     res = fisher_information(**SMALL, blur_sigma_px=1.0, edge_snr=10.0, coating_thickness=1.5 * NM, keep_images=True)
-    g = expected_tem_image(SMALL["n"], SMALL["Q"], SMALL["pixel_size"], SMALL["shape"], res.info["apex_px"],
-                           blur_sigma_px=1.0, coating_thickness=1.5 * NM, band=res.info["band"])
+    g = expected_tem_image(
+        SMALL["n"],
+        SMALL["Q"],
+        SMALL["pixel_size"],
+        SMALL["shape"],
+        res.info["apex_px"],
+        blur_sigma_px=1.0,
+        coating_thickness=1.5 * NM,
+        band=res.info["band"],
+    )
     i = res.names.index("background")
     assert res.fisher[i, i] == pytest.approx(res.n_bg * g.sum(), rel=1e-6)
 
@@ -74,6 +83,7 @@ def test_n_ml_scatter_matches_crb():
         def outer(z):
             win = r_ref * np.power(np.maximum(z, 0.0) / z_ref, 1.0 / n)
             return np.where(z < 0, -1.0, np.where(z <= z_w, win, outer_radius(z, n0, Q)))
+
         return N * expected_tem_image(n0, Q, px, shape, apex, blur_sigma_px=1.0, outer=outer, band=band)
 
     crb = 1.0 / math.sqrt(res.fisher[0, 0])
@@ -84,8 +94,11 @@ def test_n_ml_scatter_matches_crb():
     for _ in range(200):
         k = rng.poisson(lam0)
         nll = lambda n: float(np.sum(lam(n) - k * np.log(lam(n))))  # noqa: E731
-        est.append(minimize_scalar(nll, bounds=(n0 - 8 * crb, n0 + 8 * crb), method="bounded",
-                                   options=dict(xatol=1e-3 * crb)).x)
+        est.append(
+            minimize_scalar(
+                nll, bounds=(n0 - 8 * crb, n0 + 8 * crb), method="bounded", options=dict(xatol=1e-3 * crb)
+            ).x
+        )
     est = np.array(est)
     assert np.std(est, ddof=1) == pytest.approx(crb, rel=0.15)
     assert abs(est.mean() - n0) < 0.3 * crb
@@ -100,19 +113,29 @@ def test_summary_bounds_scale_with_snr_and_nest():
     assert a["crb_dugdale"].shape == (6,)
 
 
-@pytest.mark.parametrize("kw", [
-    dict(n=2, Q=10e-9, pixel_size=0.25e-9, shape=(256, 256), seed=1, orientation="up", rotation_deg=-7.0),
-    dict(n=4, Q=20e-9**3, pixel_size=0.2e-9, shape=(200, 240), seed=7, coating_thickness=1.5e-9, blur_sigma_px=2.0),
-])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(n=2, Q=10e-9, pixel_size=0.25e-9, shape=(256, 256), seed=1, orientation="up", rotation_deg=-7.0),
+        dict(n=4, Q=20e-9**3, pixel_size=0.2e-9, shape=(200, 240), seed=7, coating_thickness=1.5e-9, blur_sigma_px=2.0),
+    ],
+)
 def test_render_is_expected_image_times_background(kw):
     """The noise-free render is expected_tem_image x the background level, at the apex the
     renderer drew (the refactor was checked bit-identical against pre-refactor images once;
     hashes are not kept: float rounding may differ between CPUs)."""
     img, truth = render_tem_image(**kw, edge_snr=None, dtype=np.float64, scale_bar=False)
-    ref = expected_tem_image(kw["n"], kw["Q"], kw["pixel_size"], kw["shape"], truth["apex_px"],
-                             rotation_deg=kw.get("rotation_deg", 3.0), blur_sigma_px=kw.get("blur_sigma_px", 1.0),
-                             coating_thickness=kw.get("coating_thickness", 0.0),
-                             orientation=kw.get("orientation", "down"))
+    ref = expected_tem_image(
+        kw["n"],
+        kw["Q"],
+        kw["pixel_size"],
+        kw["shape"],
+        truth["apex_px"],
+        rotation_deg=kw.get("rotation_deg", 3.0),
+        blur_sigma_px=kw.get("blur_sigma_px", 1.0),
+        coating_thickness=kw.get("coating_thickness", 0.0),
+        orientation=kw.get("orientation", "down"),
+    )
     np.testing.assert_allclose(img, ref * truth["background"], rtol=1e-12)
 
 

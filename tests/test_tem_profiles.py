@@ -8,6 +8,7 @@ representative subset; ``-m slow``: a grid over pixel size, blur, noise,
 rotation, coating and n, judged against the Cramer-Rao bound where the targets
 are beyond what the image holds (``test_accuracy_grid``).
 """
+
 from __future__ import annotations
 
 import functools
@@ -37,8 +38,10 @@ SUBSET = [
 
 
 def _check(e, rms=0.1 * NM, dn=0.1, df=0.03, axis_deg=1.0):
-    msg = (f"rmsN {e['rms_normal'] / NM:.3f} nm, rms_r {e['rms_r'] / NM:.3f} nm, dn {e['dn']:+.3f}, "
-           f"dF {100 * e['force_err_max']:.2f} %, axis {e['axis_deg_err']:+.2f} deg")
+    msg = (
+        f"rmsN {e['rms_normal'] / NM:.3f} nm, rms_r {e['rms_r'] / NM:.3f} nm, dn {e['dn']:+.3f}, "
+        f"dF {100 * e['force_err_max']:.2f} %, axis {e['axis_deg_err']:+.2f} deg"
+    )
     assert e["rms_normal"] <= rms, msg
     assert abs(e["dn"]) <= dn, msg
     assert e["force_err_max"] <= df, msg
@@ -73,8 +76,11 @@ def test_contamination_far_above_apex_is_ignored():
     _check(e)
 
 
-GRID = list(itertools.product([2.0, 3.0, 4.0, 6.0], [0.1e-9, 0.25e-9, 0.5e-9], [0.5, 2.0], [np.inf, 10.0, 5.0],
-                              [0.0, 1.5e-9, 15e-9]))
+GRID = list(
+    itertools.product(
+        [2.0, 3.0, 4.0, 6.0], [0.1e-9, 0.25e-9, 0.5e-9], [0.5, 2.0], [np.inf, 10.0, 5.0], [0.0, 1.5e-9, 15e-9]
+    )
+)
 
 
 @functools.lru_cache(maxsize=1)
@@ -85,8 +91,13 @@ def _crb_table():
     import pandas as pd
 
     t = pd.read_csv(Path(__file__).parent / "data" / "crb_grid.csv")
-    return {(r.n, round(r.pixel_size_nm, 3), r.blur_px, round(r.coating_nm, 3), r.edge_snr):
-            (r.crb_n, r.crb_dugdale_max_percent / 100) for r in t.itertuples()}
+    return {
+        (r.n, round(r.pixel_size_nm, 3), r.blur_px, round(r.coating_nm, 3), r.edge_snr): (
+            r.crb_n,
+            r.crb_dugdale_max_percent / 100,
+        )
+        for r in t.itertuples()
+    }
 
 
 def _known_failure(n, px, blur, snr, coat):
@@ -97,21 +108,21 @@ def _known_failure(n, px, blur, snr, coat):
 # grid seeds that fail, with the reason (re-measured after each change of the edge model)
 KNOWN_SEEDS = {
     67: "n 3, 0.1 nm px, 2 px blur, SNR 10, 1.5 nm oxide: the layer is found (1.50 nm); over 8 other seeds "
-        "dn scatters by 0.04 with no bias (2.4x the bound 0.0165, 1.5x the reported sigma_n), so the "
-        "3 % pull-off target, attainable for an efficient fit, fails on some seeds: here dn +0.074, dF 3.3 %",
+    "dn scatters by 0.04 with no bias (2.4x the bound 0.0165, 1.5x the reported sigma_n), so the "
+    "3 % pull-off target, attainable for an efficient fit, fails on some seeds: here dn +0.074, dF 3.3 %",
     70: "n 3, 0.1 nm px, 2 px blur, SNR 5, 1.5 nm oxide: the layer is found (1.53 nm) and the errors are "
-        "within 1.2-1.8 of the reported sd, but dn = +0.12 is 3.6x the Cramer-Rao bound (0.033), which "
-        "makes |dn| <= 0.1 attainable: coated fits at fine pixels (on 2 x 2 blocks) scatter 2-4x the "
-        "bound (unbinned, the 15 px layer exceeds the 12 px the fit band allows)",
+    "within 1.2-1.8 of the reported sd, but dn = +0.12 is 3.6x the Cramer-Rao bound (0.033), which "
+    "makes |dn| <= 0.1 attainable: coated fits at fine pixels (on 2 x 2 blocks) scatter 2-4x the "
+    "bound (unbinned, the 15 px layer exceeds the 12 px the fit band allows)",
     88: "n 3, 0.25 nm px, 2 px blur, SNR 5, 1.5 nm oxide: on this noise draw layered fits near the true "
-        "thickness are >= 15 worse in chi^2 than none; the thinner ones that fit are flagged ambiguous "
-        "but move the edge by only 0.23 nm: the core edge, 0.95 nm inside, is 6x the reported edge sd",
+    "thickness are >= 15 worse in chi^2 than none; the thinner ones that fit are flagged ambiguous "
+    "but move the edge by only 0.23 nm: the core edge, 0.95 nm inside, is 6x the reported edge sd",
     175: "n 6, 0.1 nm px, 2 px blur, SNR 10, 1.5 nm oxide: the layer is found (1.51 nm) but the fit scatters "
-         "3.7x the bound (reported sigma_n 0.104 against 0.028): dn +0.110 = 1.06 sigma_n here (+0.049 before the "
-         "coated model was made continuous in the thickness, the same noise draw), over the 0.1 target",
+    "3.7x the bound (reported sigma_n 0.104 against 0.028): dn +0.110 = 1.06 sigma_n here (+0.049 before the "
+    "coated model was made continuous in the thickness, the same noise draw), over the 0.1 target",
     211: "n 6, 0.5 nm px, 2 px blur, SNR 10, 1.5 nm oxide: flagged ambiguous, but the largest layer "
-         "found within the threshold (0.76 nm) moves the edge 0.44 nm, the true one 0.9 nm: the edge "
-         "error is 3.6x the reported sd (limit 3.5)",
+    "found within the threshold (0.76 nm) moves the edge 0.44 nm, the true one 0.9 nm: the edge "
+    "error is 3.6x the reported sd (limit 3.5)",
 }
 
 
@@ -121,8 +132,13 @@ def _check_reported(e, rms, dn, df):
     alternative, so the errors are judged against what the pipeline reports (3.5 sd), or the
     targets where those are larger."""
     u = e["reported"]
-    _check(e, rms=max(rms, 3.5 * u["edge_sd"]), dn=max(dn, 3.5 * u["sigma_n"]),
-           df=max(df, 3.5 * u["sigma_force"]), axis_deg=2.0)
+    _check(
+        e,
+        rms=max(rms, 3.5 * u["edge_sd"]),
+        dn=max(dn, 3.5 * u["sigma_n"]),
+        df=max(df, 3.5 * u["sigma_force"]),
+        axis_deg=2.0,
+    )
 
 
 @pytest.mark.slow

@@ -1,4 +1,5 @@
 """Reader: pixel size from TIFF tags / ImageJ unit / DM calibration / caller; errors name the file."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -74,8 +75,9 @@ def test_calibration_wins_over_yaml(tmp_path, small_image):
     assert im.pixel_size == pytest.approx(0.3e-9) and "ignored" in im.note
 
 
-@pytest.mark.parametrize("unit,metres", [("nm", 1e-9), ("µm", 1e-6), ("micron", 1e-6), ("A", 1e-10),
-                                         ("Å", 1e-10), ("pm", 1e-12), ("m", 1.0)])
+@pytest.mark.parametrize(
+    "unit,metres", [("nm", 1e-9), ("µm", 1e-6), ("micron", 1e-6), ("A", 1e-10), ("Å", 1e-10), ("pm", 1e-12), ("m", 1.0)]
+)
 def test_units(unit, metres):
     assert unit_to_metres(unit) == pytest.approx(metres)
 

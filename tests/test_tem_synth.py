@@ -1,4 +1,5 @@
 """Synthetic TEM image generator: determinism, exact outer profile, contrast physics, TIFF tags."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -48,8 +49,20 @@ def test_erosion_is_normal_offset():
 def test_projection_contrast_noise_free_profile():
     """Noise-free row through an uncoated, unrotated, unblurred tip matches exp(-2 sqrt(r^2-x^2)/lambda)."""
     px, n, Q, lam = 0.2e-9, 2.0, 10e-9, 40e-9
-    img, t = render_tem_image(n, Q, px, shape=(160, 160), blur_sigma_px=0, edge_snr=None, rotation_deg=0,
-                              scale_bar=False, gradient=0.0, dtype=np.float64, supersample=9, lambda_core=lam)
+    img, t = render_tem_image(
+        n,
+        Q,
+        px,
+        shape=(160, 160),
+        blur_sigma_px=0,
+        edge_snr=None,
+        rotation_deg=0,
+        scale_bar=False,
+        gradient=0.0,
+        dtype=np.float64,
+        supersample=9,
+        lambda_core=lam,
+    )
     r_a, c_a = t["apex_px"]
     row = int(r_a) - 40
     z = (r_a - row) * px

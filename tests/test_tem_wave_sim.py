@@ -1,6 +1,7 @@
 """Independent wave-optical TEM simulator (pipeline.synth.tem_wave): its physics against
 textbook values and closed forms computed here, its noise and file output, its truth, and
 the grader (pipeline.synth.tem_wave_truth)."""
+
 from __future__ import annotations
 
 import json
@@ -29,8 +30,10 @@ pytestmark = pytest.mark.filterwarnings("error")
 
 # ----------------------------------------------------------------------------- electron optics
 
-@pytest.mark.parametrize("kv, lam_pm, sigma_per_v_nm", [
-    (100.0, 3.7014, 9.2437e-3), (200.0, 2.5079, 7.2884e-3), (300.0, 1.9687, 6.5262e-3)])
+
+@pytest.mark.parametrize(
+    "kv, lam_pm, sigma_per_v_nm", [(100.0, 3.7014, 9.2437e-3), (200.0, 2.5079, 7.2884e-3), (300.0, 1.9687, 6.5262e-3)]
+)
 def test_wavelength_and_interaction_constant(kv, lam_pm, sigma_per_v_nm):
     """Textbook values (Kirkland Table 2.2 / EMsoft EMqg: 200 kV 2.508 pm and 7.288e-3 rad/(V nm),
     i.e. 7.29e-4 rad/(V Angstrom))."""
@@ -40,9 +43,26 @@ def test_wavelength_and_interaction_constant(kv, lam_pm, sigma_per_v_nm):
 
 def _clean(**kw):
     """A tip image with no aberrations, envelopes off (coherent), no particles, no asymmetry."""
-    base = dict(n=2.0, R=20e-9, S=1.0, z_join=40e-9, layer="none", asymmetry=0.0, particles=(),
-                pixel_size=0.25e-9, shape=(160, 160), apex_px=(120.3, 80.2), rotation_deg=0.0, defocus=0.0,
-                cs=0.0, aperture=1.0, illumination_gradient=0.0, vignetting=0.0, noise=False, bits=0)
+    base = dict(
+        n=2.0,
+        R=20e-9,
+        S=1.0,
+        z_join=40e-9,
+        layer="none",
+        asymmetry=0.0,
+        particles=(),
+        pixel_size=0.25e-9,
+        shape=(160, 160),
+        apex_px=(120.3, 80.2),
+        rotation_deg=0.0,
+        defocus=0.0,
+        cs=0.0,
+        aperture=1.0,
+        illumination_gradient=0.0,
+        vignetting=0.0,
+        noise=False,
+        bits=0,
+    )
     base.update(kw)
     return TemWaveParams(**base)
 
@@ -120,6 +140,7 @@ def test_envelopes_damp_fringes_and_aperture_cuts():
 
 # ----------------------------------------------------------------------------- geometry
 
+
 def test_chords_of_paraboloid_sphere_and_limacon():
     rng = np.random.default_rng(1)
     R = 15e-9
@@ -181,6 +202,7 @@ def test_core_is_the_inner_parallel_surface():
 
 # ----------------------------------------------------------------------------- detector
 
+
 def test_poisson_statistics_and_detector_noise():
     rng = np.random.default_rng(3)
     flat = np.full((256, 256), 400.0)
@@ -197,23 +219,34 @@ def test_poisson_statistics_and_detector_noise():
 
 
 def test_snr_setting_gives_that_snr_in_the_saved_image():
-    p = draw_params(11, layer="none", particles=(), bits=16, background_level=0.5, illumination_gradient=0.0,
-                    vignetting=0.0, shape=(320, 320), pixel_size=0.3e-9, snr=12.0)
+    p = draw_params(
+        11,
+        layer="none",
+        particles=(),
+        bits=16,
+        background_level=0.5,
+        illumination_gradient=0.0,
+        vignetting=0.0,
+        shape=(320, 320),
+        pixel_size=0.3e-9,
+        snr=12.0,
+    )
     img, truth = simulate(p)
     r_a, c_a = truth["apex_px"]
-    vac = img[max(0, int(r_a) + 20):, :].astype(float)
+    vac = img[max(0, int(r_a) + 20) :, :].astype(float)
     vac = vac[:, : min(100, vac.shape[1])]
     assert vac.std() == pytest.approx(truth["noise_sigma"], rel=0.1)
     assert truth["vacuum_level"] == pytest.approx(vac.mean(), rel=0.02)
 
 
 def test_quantisation_clipping_and_dtypes():
-    kw = dict(layer="none", particles=(), shape=(256, 256), pixel_size=0.3e-9, illumination_gradient=0.0,
-              vignetting=0.0)
+    kw = dict(
+        layer="none", particles=(), shape=(256, 256), pixel_size=0.3e-9, illumination_gradient=0.0, vignetting=0.0
+    )
     img8, t8 = simulate(draw_params(2, bits=8, background_level=1.2, **kw))
     assert img8.dtype == np.uint8 and img8.max() == 255
     r_a = int(t8["apex_px"][0])
-    below = img8[r_a + 15:] if t8["orientation"] == "down" else img8[: r_a - 15]
+    below = img8[r_a + 15 :] if t8["orientation"] == "down" else img8[: r_a - 15]
     assert np.mean(below == 255) > 0.5 and t8["saturated_fraction"] > 0.2  # saturated vacuum
     img16, t16 = simulate(draw_params(2, bits=16, background_level=0.4, **kw))
     assert img16.dtype == np.uint16 and img16.max() < 65535 and t16["saturated_fraction"] == 0
@@ -232,9 +265,17 @@ def test_deterministic_by_seed():
 
 # ----------------------------------------------------------------------------- truth
 
+
 def test_truth_silhouette_is_the_outer_surface():
-    p = draw_params(5, asymmetry=0.04, layer="DLC", layer_thickness=8e-9, shape=(256, 256), pixel_size=0.3e-9,
-                    particles=(ParticleSpec(6e-9, 0.0, (2e-9, 1.5e-9, 2e-9)),))
+    p = draw_params(
+        5,
+        asymmetry=0.04,
+        layer="DLC",
+        layer_thickness=8e-9,
+        shape=(256, 256),
+        pixel_size=0.3e-9,
+        particles=(ParticleSpec(6e-9, 0.0, (2e-9, 1.5e-9, 2e-9)),),
+    )
     img, truth = simulate(p)
     body = tip_body(p)
     xs, zs = truth["silhouette_tip"].T
@@ -270,6 +311,7 @@ def test_padding_leaves_the_apex_alone():
 
 # ----------------------------------------------------------------------------- grader and files
 
+
 def test_grader_on_the_true_silhouette():
     """A profile that IS the true silhouette grades to edge RMS ~ 0 and n as the ideal fit."""
     from types import SimpleNamespace
@@ -280,9 +322,14 @@ def test_grader_on_the_true_silhouette():
     _, truth = simulate(p)
     xs, zs = truth["silhouette_tip"].T
     keep = zs <= 20e-9
-    prof = SimpleNamespace(edge_px=truth["silhouette_px"][keep], apex_px=np.array(truth["apex_px"]),
-                           angle=math.radians(truth["rotation_deg"]), z=zs[keep], x=xs[keep],
-                           edge_model={"coating_thickness": 0.0})
+    prof = SimpleNamespace(
+        edge_px=truth["silhouette_px"][keep],
+        apex_px=np.array(truth["apex_px"]),
+        angle=math.radians(truth["rotation_deg"]),
+        z=zs[keep],
+        x=xs[keep],
+        edge_model={"coating_thickness": 0.0},
+    )
     e = edge_errors(prof.edge_px, truth, prof.z <= 6e-9)
     assert e["rms"] < 1e-13 and e["n_points"] > 100
     fit = fit_power_law(np.abs(xs[keep]), zs[keep], 6e-9, groups=np.where(xs[keep] < 0, -1, 1))

@@ -1,4 +1,5 @@
 """The sample-data generator is deterministic and its truth is self-consistent."""
+
 import hashlib
 
 import pytest
@@ -8,8 +9,11 @@ from pipeline.synth.wear_test import sample_tips, tip_config, write_sample_bundl
 
 
 def digest(folder):
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def small_tip():

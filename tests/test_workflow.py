@@ -5,6 +5,7 @@ a second dry run has nothing to do, touching one tip's YAML reruns that tip only
 a bad tip YAML fails before any job runs, naming the file and the key, and a tip whose
 jobs fail costs the other tip nothing (``--keep-going``), with the reason on the console.
 """
+
 import csv
 import os
 import shutil
@@ -28,9 +29,23 @@ def small_tips():
 
 
 def snakemake(workdir: Path, *args):
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory", str(workdir),
-           "--configfile", str(workdir / "config.yaml"), "--cores", "2", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, cwd=workdir, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    cmd = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        "-s",
+        str(ROOT / "Snakefile"),
+        "--directory",
+        str(workdir),
+        "--configfile",
+        str(workdir / "config.yaml"),
+        "--cores",
+        "2",
+        *args,
+    ]
+    return subprocess.run(
+        cmd, capture_output=True, text=True, cwd=workdir, env={**os.environ, "PYTHONWARNINGS": "ignore"}
+    )
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +91,11 @@ def test_every_output_is_readable_as_the_umask_allows(finished_run):
 def test_every_report_item_has_a_caption_and_the_workflow_a_description():
     import re
 
-    calls = [(smk.name, m.group(0)) for smk in (ROOT / "workflow_rules").glob("*.smk")
-             for m in re.finditer(r"report\((?:[^()]|\([^()]*\))*\)", smk.read_text())]
+    calls = [
+        (smk.name, m.group(0))
+        for smk in (ROOT / "workflow_rules").glob("*.smk")
+        for m in re.finditer(r"report\((?:[^()]|\([^()]*\))*\)", smk.read_text())
+    ]
     assert len(calls) == 8
     for smk, call in calls:
         caption = re.search(r'caption="([^"]+)"', call)
@@ -93,7 +111,9 @@ def test_report_shows_the_captions(finished_run, tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     html = (tmp_path / "report.html").read_text()
     assert "Where to start" in html  # the workflow description
-    assert html.count("What to look for") == 2 * (3 + 3 + 1 + 1 + 1 + 1) + 1  # per tip: profiles, forces x3; fits, W_A(h), map, table; summary
+    assert (
+        html.count("What to look for") == 2 * (3 + 3 + 1 + 1 + 1 + 1) + 1
+    )  # per tip: profiles, forces x3; fits, W_A(h), map, table; summary
     assert "Tip <strong>tipB_Si</strong>, interval <strong>scan030</strong>" in html  # wildcards filled in
 
 
@@ -108,7 +128,7 @@ def planned_commands(workdir):
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out
     # dry-run lines read "Shell command: python -m pipeline <stage> ..."
-    return [line[line.index("python -m pipeline"):] for line in out.splitlines() if "python -m pipeline" in line]
+    return [line[line.index("python -m pipeline") :] for line in out.splitlines() if "python -m pipeline" in line]
 
 
 def test_touching_a_tip_yaml_without_change_reruns_nothing(finished_run):
@@ -145,7 +165,12 @@ def test_editing_the_inversion_settings_reruns_every_inversion_and_what_follows(
         cfg["monte_carlo"]["seed"] = 2
         path.write_text(yaml.safe_dump(cfg))
         planned = planned_commands(finished_run)
-        assert {line.split()[3] for line in planned} == {"inversion", "adhesion-range", "adhesion-figures", "summary"}, planned
+        assert {line.split()[3] for line in planned} == {
+            "inversion",
+            "adhesion-range",
+            "adhesion-figures",
+            "summary",
+        }, planned
         inversions = [line for line in planned if " inversion " in line]
         assert len(inversions) == 2 and all("--workflow-config config.yaml " in line for line in inversions)
     finally:
@@ -164,7 +189,10 @@ def test_inversion_settings_given_on_the_command_line_are_refused(finished_run):
 @pytest.mark.parametrize(
     "edit, needle",
     [
-        (lambda c: c["cantilever"].update(spring_constant_method="given", spring_constant=0.9), "cantilever.spring_constant: 0.9 has no unit"),
+        (
+            lambda c: c["cantilever"].update(spring_constant_method="given", spring_constant=0.9),
+            "cantilever.spring_constant: 0.9 has no unit",
+        ),
         (lambda c: c.update(colour="blue"), "'colour' was unexpected"),
         (lambda c: c["intervals"][1].update(image="tem/missing.tif"), "intervals[1].image"),
     ],

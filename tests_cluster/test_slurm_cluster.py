@@ -14,6 +14,7 @@ SLURM's memory limit, its time limit and scancel end the cluster job; the workfl
 reason, the rule, the tip and the interval, and a rerun must finish the work without repeating
 what was done.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -40,8 +41,10 @@ def _skip_reason() -> str | None:
         return "needs root: scripts/slurm_local.sh runs munged, slurmctld and slurmd (which starts the jobs) as root"
     missing = [c for c in CLUSTER_COMMANDS if shutil.which(c) is None]
     if missing:
-        return (f"needs Debian's packages slurmctld slurmd slurm-client munge slurmdbd mariadb-server "
-                f"(missing {', '.join(missing)}): scripts/slurm_local.sh install --accounting")
+        return (
+            f"needs Debian's packages slurmctld slurmd slurm-client munge slurmdbd mariadb-server "
+            f"(missing {', '.join(missing)}): scripts/slurm_local.sh install --accounting"
+        )
     if importlib.util.find_spec("snakemake_executor_plugin_slurm") is None:
         return 'needs the SLURM executor plugin: pip install -e ".[cluster]"'
     return None
@@ -78,8 +81,13 @@ def make_workdir(path: Path) -> Path:
 
 def job_env(**extra: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "SBATCH_", "WEAR_FAULT"))}
-    env.update(PYTHONPATH=f"{FAULTS}{os.pathsep}{ROOT}", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-               PYTHONWARNINGS="ignore", **extra)
+    env.update(
+        PYTHONPATH=f"{FAULTS}{os.pathsep}{ROOT}",
+        OMP_NUM_THREADS="1",
+        OPENBLAS_NUM_THREADS="1",
+        PYTHONWARNINGS="ignore",
+        **extra,
+    )
     return env
 
 
@@ -90,11 +98,14 @@ def snakemake_cmd(workdir: Path, *args: str) -> list[str]:
 def run_on_cluster(workdir: Path, *targets: str, **env: str) -> subprocess.CompletedProcess:
     cmd = snakemake_cmd(workdir, "--profile", str(ROOT / "profiles" / "slurm"), *targets)
     try:
-        return subprocess.run(cmd, capture_output=True, text=True, cwd=workdir, env=job_env(**env),
-                              timeout=RUN_TIMEOUT_S)
+        return subprocess.run(
+            cmd, capture_output=True, text=True, cwd=workdir, env=job_env(**env), timeout=RUN_TIMEOUT_S
+        )
     except subprocess.TimeoutExpired as exc:
-        pytest.fail(f"cluster run did not end within {RUN_TIMEOUT_S} s (status polling hangs?):\n"
-                    f"{(exc.stderr or b'')[-3000:]!r}")
+        pytest.fail(
+            f"cluster run did not end within {RUN_TIMEOUT_S} s (status polling hangs?):\n"
+            f"{(exc.stderr or b'')[-3000:]!r}"
+        )
 
 
 def results_of(workdir: Path) -> dict[str, bytes]:
@@ -109,16 +120,25 @@ def mtimes(workdir: Path, tip: str) -> dict[str, float]:
 @pytest.fixture(scope="module")
 def local_results(tmp_path_factory) -> dict[str, bytes]:
     work = make_workdir(tmp_path_factory.mktemp("cluster") / "local")
-    proc = subprocess.run(snakemake_cmd(work, "--cores", "2"), capture_output=True, text=True, cwd=work,
-                          env=job_env(), timeout=RUN_TIMEOUT_S)
+    proc = subprocess.run(
+        snakemake_cmd(work, "--cores", "2"),
+        capture_output=True,
+        text=True,
+        cwd=work,
+        env=job_env(),
+        timeout=RUN_TIMEOUT_S,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return results_of(work)
 
 
 def assert_reported(output: str, reason: str, rule: str, tip: str, interval: str) -> str:
     """The run's error output has the one-line report of the failed SLURM job; returns its log."""
-    m = re.search(rf"SLURM job (\d+) failed: {re.escape(reason)}, while running rule {rule} "
-                  rf"\(tip={tip}, interval={interval}\)\. SLURM log: (\S+)", output)
+    m = re.search(
+        rf"SLURM job (\d+) failed: {re.escape(reason)}, while running rule {rule} "
+        rf"\(tip={tip}, interval={interval}\)\. SLURM log: (\S+)",
+        output,
+    )
     assert m, f"no report of {rule} {tip} {interval} ({reason}) in:\n{output[-4000:]}"
     assert "Error in group tip" in output
     return m.group(2)
@@ -167,7 +187,11 @@ def test_with_accounting_cancelled_then_rerun(cluster, local_results, tmp_path_f
         deadline = time.monotonic() + 600
         jobid = None
         while jobid is None and time.monotonic() < deadline and proc.poll() is None:
-            m = re.search(r"fault injection .* SLURM_JOB_ID=(\d+)", stage_log.read_text()) if stage_log.exists() else None
+            m = (
+                re.search(r"fault injection .* SLURM_JOB_ID=(\d+)", stage_log.read_text())
+                if stage_log.exists()
+                else None
+            )
             jobid = m.group(1) if m else None
             time.sleep(2)
         if jobid is None:
@@ -184,8 +208,9 @@ def test_with_accounting_cancelled_then_rerun(cluster, local_results, tmp_path_f
     assert rc != 0
     assert_reported(output, "it was cancelled (scancel or an administrator)", "profiles", "tipA_DLC", "scan030")
     # with accounting, sacct knows the jobs and the account they ran under
-    sacct = subprocess.run(["sacct", "-X", "-n", "-P", "-j", jobid, "-o", "State,Account"],
-                           capture_output=True, text=True, check=True).stdout
+    sacct = subprocess.run(
+        ["sacct", "-X", "-n", "-P", "-j", jobid, "-o", "State,Account"], capture_output=True, text=True, check=True
+    ).stdout
     assert sacct.split("\n")[0].split("|")[0].startswith("CANCELLED") and sacct.split("\n")[0].endswith("|wear")
     tip_b = mtimes(work, "tipB_Si")
 

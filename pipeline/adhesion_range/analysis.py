@@ -1,4 +1,5 @@
 """One traction law of a tip: reference, per-interval crossings and the global estimate."""
+
 from __future__ import annotations
 
 from pipeline.adhesion_range.crossings import interval_crossing
@@ -31,11 +32,14 @@ def analyse_law(inv: dict, law: str, inconsistency: str = "random_effects") -> d
     if reference is None:
         res["status"] = "no_reference"
         for nm in order:
-            res["intervals"][nm] = {"status": "reference" if nm in refs else "unusable", "crossings": [], "note": "no usable reference"}
+            res["intervals"][nm] = {
+                "status": "reference" if nm in refs else "unusable",
+                "crossings": [],
+                "note": "no usable reference",
+            }
         return res
     for nm in order:
         yc, ys = curves(nm)
         res["intervals"][nm] = interval_crossing(ivs[nm], yc, ys, ref_c, ref_s, h)
     res["global"] = global_estimate(curves, order, res["intervals"], h, inconsistency)
     return res
-

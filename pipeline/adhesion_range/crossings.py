@@ -7,6 +7,7 @@ approach each other ``below``/``above`` the grid), ``multiple_crossings`` (all r
 ``n_too_close_to_2`` (n - 2 < 3 sigma_n or |dD/d ln h| < MIN_SLOPE: the curve cannot constrain
 h), ``reference``, ``unusable`` (invalid fit, n far below 2, no finite W_A).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -65,8 +66,15 @@ def interval_crossing(d: dict, yc, ys, ref_c, ref_s, h) -> dict:
     """Status and crossing of one interval (``d``: its entry of ``load_inversion``; yc, ys its
     central (H,) and sampled (S, H) ln W_A; ref_c, ref_s the reference's; h the grid, m)."""
     x = np.log(h)
-    info = {"crossings": [], "h": np.nan, "h_pcts": np.full(len(CI_PCTS), np.nan), "side": "",
-            "slope": np.nan, "crossing_fraction": np.nan, "note": ""}
+    info = {
+        "crossings": [],
+        "h": np.nan,
+        "h_pcts": np.full(len(CI_PCTS), np.nan),
+        "side": "",
+        "slope": np.nan,
+        "crossing_fraction": np.nan,
+        "note": "",
+    }
     if d["reference"]:
         return {**info, "status": "reference"}
     if d["n_flag"] not in USABLE_N_FLAGS or not np.any(np.isfinite(yc)):
@@ -83,8 +91,10 @@ def interval_crossing(d: dict, yc, ys, ref_c, ref_s, h) -> dict:
     n_used, u_n = float(d["n_used"]), float(d["u_n"])
     if (n_used - 2.0) < N_SIGMA_NEAR_2 * u_n or not (abs(sl) >= MIN_SLOPE):
         info["status"] = "n_too_close_to_2"
-        info["note"] = (f"n = {d['n']:.3f} +/- {u_n:.3f}, |d ln(W/W_ref)/d ln h| = {abs(sl):.3f}: "
-                        f"W_A(h) too flat to constrain h (need n - 2 >= {N_SIGMA_NEAR_2:g} sigma_n and slope >= {MIN_SLOPE})")
+        info["note"] = (
+            f"n = {d['n']:.3f} +/- {u_n:.3f}, |d ln(W/W_ref)/d ln h| = {abs(sl):.3f}: "
+            f"W_A(h) too flat to constrain h (need n - 2 >= {N_SIGMA_NEAR_2:g} sigma_n and slope >= {MIN_SLOPE})"
+        )
         return info
     if len(roots) == 0:
         return {**info, **_no_crossing(Dc, h)}
@@ -109,6 +119,11 @@ def _no_crossing(Dc, h) -> dict:
     side = "below" if lo < hi else "above"
     edge = h[0] if lo < hi else h[-1]
     rel = "above" if np.nanmedian(Dc) > 0 else "below"
-    return {"status": "no_crossing", "side": side,
-            "note": (f"W_A(h) stays {rel} the reference on the whole grid; the curves approach each other "
-                     f"{side} the grid (h {'<' if lo < hi else '>'} {edge * 1e9:.3g} nm)")}
+    return {
+        "status": "no_crossing",
+        "side": side,
+        "note": (
+            f"W_A(h) stays {rel} the reference on the whole grid; the curves approach each other "
+            f"{side} the grid (h {'<' if lo < hi else '>'} {edge * 1e9:.3g} nm)"
+        ),
+    }

@@ -1,4 +1,5 @@
 """ln W_A(h) curves of the intervals and percentiles of per-sample estimates."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -14,6 +14,7 @@
 The rigid pull-off of the four laws against n (Fig. 8) is a mechanics figure
 (``pipeline.mechanics.figures.plot_rigid_laws``).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,8 +24,12 @@ from pipeline.adhesion_range.io import load_range
 from pipeline.mechanics import lambda_boundary
 from pipeline.plotting import plain_log_axis, plt, save_png
 
-LAW_TITLES = {"dugdale": "Dugdale", "lj": "Lennard-Jones 3-9 (z0 = h/0.974)", "tri1": "Tri1",
-              "tri2": "Tri2 (h = peak-stress separation; full range 2h)"}
+LAW_TITLES = {
+    "dugdale": "Dugdale",
+    "lj": "Lennard-Jones 3-9 (z0 = h/0.974)",
+    "tri1": "Tri1",
+    "tri2": "Tri2 (h = peak-stress separation; full range 2h)",
+}
 _LO, _HI = CI_PCTS.index(2.5), CI_PCTS.index(97.5)
 
 
@@ -48,10 +53,11 @@ def plot_w_of_h(range_h5, out_png, *, tip: str = ""):
     cols = dict(zip(worn, _colors(len(worn))))
     for ax, law in zip(axes.ravel(), laws):
         _w_of_h_panel(ax, rng, law, cols, tip)
-    for ax in axes.ravel()[len(laws):]:
+    for ax in axes.ravel()[len(laws) :]:
         ax.set_visible(False)
-    fig.suptitle(f"Tip {tip}: W$_A$(h) per wear interval (bands: MC 16-84 %; markers: crossings with 95 % CI)",
-                 fontsize=11)
+    fig.suptitle(
+        f"Tip {tip}: W$_A$(h) per wear interval (bands: MC 16-84 %; markers: crossings with 95 % CI)", fontsize=11
+    )
     fig.tight_layout()
     save_png(fig, out_png, DPI)
 
@@ -70,8 +76,7 @@ def _w_of_h_panel(ax, rng: dict, law: str, cols: dict, tip: str) -> None:
     ref = L.get("reference")
     if ref is not None:
         rp = np.asarray(ref["W_ref_pcts"], float) * 1e3
-        ax.fill_between(h_nm, rp[_LO], rp[_HI], color="tab:red", alpha=0.12, lw=0,
-                        label="reference W_A, 95 % band")
+        ax.fill_between(h_nm, rp[_LO], rp[_HI], color="tab:red", alpha=0.12, lw=0, label="reference W_A, 95 % band")
         ax.plot(h_nm, np.asarray(ref["W_ref"]) * 1e3, color="tab:red", lw=1.2, label="reference W_A")
     _global_marker(ax, h_nm, L.get("global", {}))
     ax.set_xscale("log")
@@ -85,8 +90,16 @@ def _w_of_h_panel(ax, rng: dict, law: str, cols: dict, tip: str) -> None:
     plain_log_axis(ax.yaxis)
     if rng["solver_mode"] == "auto":
         full = "M-D-n" if law == "dugdale" else "elastic solver"
-        ax.text(0.98, 0.98, f"solver auto: rigid where $\\Lambda < \\Lambda_b(n)$, else {full}\n(a step of <= 5 % where it switches)",
-                transform=ax.transAxes, ha="right", va="top", fontsize=6.5, color="0.3")
+        ax.text(
+            0.98,
+            0.98,
+            f"solver auto: rigid where $\\Lambda < \\Lambda_b(n)$, else {full}\n(a step of <= 5 % where it switches)",
+            transform=ax.transAxes,
+            ha="right",
+            va="top",
+            fontsize=6.5,
+            color="0.3",
+        )
     ax.set_xlabel("adhesion range h (nm)")
     ax.set_ylabel("work of adhesion W$_A$ (mJ/m$^2$)")
     ax.set_title(f"{tip}: {LAW_TITLES.get(law, law)}", fontsize=10)
@@ -123,11 +136,25 @@ def _global_marker(ax, h_nm, g: dict) -> None:
         lo_, hi_ = (hp[_LO] if np.isfinite(hp[_LO]) else h_nm[0]), (hp[_HI] if np.isfinite(hp[_HI]) else h_nm[-1])
         ax.axvspan(lo_, hi_, color="tab:blue", alpha=0.08)
         ax.axvline(hg, color="tab:blue", lw=1.0, ls=":")
-        ax.plot([hg], [float(g["W_A"]) * 1e3], marker="*", ms=14, color="tab:blue", mec="k", zorder=6,
-                label=f"global: h = {hg:.2f} nm [{lo_:.2f}, {hi_:.2f}], W_A = {float(g['W_A']) * 1e3:.1f} mJ/m$^2$")
+        ax.plot(
+            [hg],
+            [float(g["W_A"]) * 1e3],
+            marker="*",
+            ms=14,
+            color="tab:blue",
+            mec="k",
+            zorder=6,
+            label=f"global: h = {hg:.2f} nm [{lo_:.2f}, {hi_:.2f}], W_A = {float(g['W_A']) * 1e3:.1f} mJ/m$^2$",
+        )
     else:
-        ax.text(0.02, 0.02, f"global estimate: {g.get('status', 'n/a') if g else 'n/a'}", transform=ax.transAxes,
-                fontsize=8, color="tab:blue")
+        ax.text(
+            0.02,
+            0.02,
+            f"global estimate: {g.get('status', 'n/a') if g else 'n/a'}",
+            transform=ax.transAxes,
+            fontsize=8,
+            color="tab:blue",
+        )
 
 
 def map_boundary(n, x, lam_b=None):
@@ -160,22 +187,42 @@ def plot_adhesion_map(range_h5, out_png, *, tip: str = "", law: str = "dugdale")
     greys = plt.get_cmap("Greys")
     for k, n in enumerate(range(2, 7)):
         lb = float(lambda_boundary(float(n)))
-        ax.plot(x, map_boundary(n, x, lb), color=greys(0.4 + 0.12 * k), lw=1.3,
-                label=f"boundary n = {n} ($\\Lambda_b$ = {lb:.3f})")
+        ax.plot(
+            x,
+            map_boundary(n, x, lb),
+            color=greys(0.4 + 0.12 * k),
+            lw=1.3,
+            label=f"boundary n = {n} ($\\Lambda_b$ = {lb:.3f})",
+        )
     lines = _map_intervals(ax, rng, W, h_est, E_star)
     if lines:
-        ax.text(0.03, 0.97, f"at h = {h_est * 1e9:.3g} nm:\n" + "\n".join(lines) if np.isfinite(h_est) else "\n".join(lines),
-                transform=ax.transAxes, fontsize=7, va="top", family="monospace",
-                bbox=dict(boxstyle="round", fc="white", ec="0.7", alpha=0.9))
+        ax.text(
+            0.03,
+            0.97,
+            f"at h = {h_est * 1e9:.3g} nm:\n" + "\n".join(lines) if np.isfinite(h_est) else "\n".join(lines),
+            transform=ax.transAxes,
+            fontsize=7,
+            va="top",
+            family="monospace",
+            bbox=dict(boxstyle="round", fc="white", ec="0.7", alpha=0.9),
+        )
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlim(1e-6, 1)
     ax.set_ylim(1, 1e4)
     ax.set_xlabel(r"$\sigma_0/E^*$  ($\sigma_0 = W_A/h$)")
     ax.set_ylabel(r"$R\,S^{(n-2)/(n-1)}/h$  (= R/h for S = 1)")
-    ax.text(0.97, 0.04, "rigid regime: below/left of the boundary line of the interval's n\n"
-            f"(E* = {E_star / 1e9:.3g} GPa, W$_A$ = {W * 1e3:.3g} mJ/m$^2$ from the {src};\n"
-            "star = estimated h)", transform=ax.transAxes, fontsize=7.5, va="bottom", ha="right")
+    ax.text(
+        0.97,
+        0.04,
+        "rigid regime: below/left of the boundary line of the interval's n\n"
+        f"(E* = {E_star / 1e9:.3g} GPa, W$_A$ = {W * 1e3:.3g} mJ/m$^2$ from the {src};\n"
+        "star = estimated h)",
+        transform=ax.transAxes,
+        fontsize=7.5,
+        va="bottom",
+        ha="right",
+    )
     ax.set_title(f"Tip {tip}: adhesion map ({law}), Eq. 13 boundaries n = 2-6")
     ax.grid(True, which="both", alpha=0.2)
     ax.legend(fontsize=7, loc="upper right")
@@ -200,17 +247,29 @@ def _map_intervals(ax, rng: dict, W: float, h_est: float, E_star: float) -> list
         q = float(np.exp(d["ln_Q_used"]))
         xs, ys = map_coordinates(W, h, n_used, q, E_star)
         # thicker lines first so that coinciding cases (same R_eff) stay visible
-        ax.plot(xs, ys, color=c, lw=1.5 + 2.5 * (nint - 1 - i) / max(nint - 1, 1), solid_capstyle="butt",
-                label=f"{nm}: n = {n_used:.2f}, R$_{{eff}}$ = {np.exp(np.log(q) / (n_used - 1)) * 1e9:.3g} nm")
+        ax.plot(
+            xs,
+            ys,
+            color=c,
+            lw=1.5 + 2.5 * (nint - 1 - i) / max(nint - 1, 1),
+            solid_capstyle="butt",
+            label=f"{nm}: n = {n_used:.2f}, R$_{{eff}}$ = {np.exp(np.log(q) / (n_used - 1)) * 1e9:.3g} nm",
+        )
         ax.plot([xs[0]], [ys[0]], "o", color=c, ms=4)
         if i == 0:
-            ax.annotate(f"h = {h[0] * 1e9:.2g} nm", (xs[0], ys[0]), xytext=(5, 2), textcoords="offset points", fontsize=7)
-            ax.annotate(f"h = {h[-1] * 1e9:.3g} nm", (xs[-1], ys[-1]), xytext=(5, -8), textcoords="offset points", fontsize=7)
+            ax.annotate(
+                f"h = {h[0] * 1e9:.2g} nm", (xs[0], ys[0]), xytext=(5, 2), textcoords="offset points", fontsize=7
+            )
+            ax.annotate(
+                f"h = {h[-1] * 1e9:.3g} nm", (xs[-1], ys[-1]), xytext=(5, -8), textcoords="offset points", fontsize=7
+            )
         if np.isfinite(h_est):
             xe, ye = map_coordinates(W, h_est, n_used, q, E_star)
             ax.plot([xe], [ye], "*", color=c, mec="k", ms=12, zorder=5)
-            lam = (xe ** n_used * ye ** (n_used - 1)) ** (1 / (2 * n_used - 1))
+            lam = (xe**n_used * ye ** (n_used - 1)) ** (1 / (2 * n_used - 1))
             lb = float(lambda_boundary(n_used))
-            lines.append(f"{nm}: $\\Lambda$ = {lam:.3g} {'<' if lam < lb else '>='} $\\Lambda_b$ = {lb:.3g}"
-                         f" -> {'rigid valid' if lam < lb else 'M-D-n needed'}")
+            lines.append(
+                f"{nm}: $\\Lambda$ = {lam:.3g} {'<' if lam < lb else '>='} $\\Lambda_b$ = {lb:.3g}"
+                f" -> {'rigid valid' if lam < lb else 'M-D-n needed'}"
+            )
     return lines

@@ -7,6 +7,7 @@ h = argmin chi2 refined by a parabola in ln h; W_A = GLS mean there.  The CI com
 repeating the minimisation for every MC sample (percentiles of the per-sample estimates).
 Where the intervals disagree more than their uncertainties allow, ``inconsistency`` widens it.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -29,9 +30,18 @@ def global_estimate(curves: LawCurves, order: list, intervals: dict, h, inconsis
     used = [nm for nm in order if intervals[nm]["status"] in USED_STATUSES]
     used = [nm for nm in used if np.any(np.isfinite(curves(nm)[0]))]
     constraining = [nm for nm in used if intervals[nm]["status"] in CONSTRAINING_STATUSES]
-    g = {"intervals_used": used, "h": np.nan, "W_A": np.nan, "h_pcts": np.full(len(CI_PCTS), np.nan),
-         "W_pcts": np.full(len(CI_PCTS), np.nan), "chi2_min": np.nan, "dof": max(len(used) - 2, 0),
-         "chi2": np.full(h.shape, np.nan), "W_common": np.full(h.shape, np.nan), "note": ""}
+    g = {
+        "intervals_used": used,
+        "h": np.nan,
+        "W_A": np.nan,
+        "h_pcts": np.full(len(CI_PCTS), np.nan),
+        "W_pcts": np.full(len(CI_PCTS), np.nan),
+        "chi2_min": np.nan,
+        "dof": max(len(used) - 2, 0),
+        "chi2": np.full(h.shape, np.nan),
+        "W_common": np.full(h.shape, np.nan),
+        "note": "",
+    }
     excluded = [nm for nm in order if nm not in used]
     if excluded:
         g["note"] = "excluded: " + ", ".join(f"{nm} ({intervals[nm]['status']})" for nm in excluded) + ". "

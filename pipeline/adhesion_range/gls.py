@@ -1,5 +1,6 @@
 """Generalised least squares of a common ln W_A over the intervals at every h, with the
 per-h covariance of the Monte-Carlo samples, and the minimum of its chi^2 over h."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -25,12 +26,14 @@ def sample_covariances(Y, chunk=None):
         return _centred_products(Yz, ok, mean, n, I)
     total = np.zeros((H, I))
     for a in range(0, S, chunk):
-        total += np.where(ok[a:a + chunk, :, None], Y[a:a + chunk], 0.0).sum(axis=0)
+        total += np.where(ok[a : a + chunk, :, None], Y[a : a + chunk], 0.0).sum(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         mean = total / n[:, None]
     C = np.zeros((H, I, I))
     for a in range(0, S, chunk):
-        C += _centred_products(np.where(ok[a:a + chunk, :, None], Y[a:a + chunk], 0.0), ok[a:a + chunk], mean, None, I)
+        C += _centred_products(
+            np.where(ok[a : a + chunk, :, None], Y[a : a + chunk], 0.0), ok[a : a + chunk], mean, None, I
+        )
     with np.errstate(divide="ignore", invalid="ignore"):
         C /= (n - 1)[:, None, None]
     C[n < max(MIN_SAMPLES_FOR_COV, I + 2)] = np.nan
@@ -81,7 +84,7 @@ def gls_chi2(Y, P, chunk=None):
     Samples (Y of shape (S, H, I)) are taken ``chunk`` (default ``SAMPLE_CHUNK``) at a time."""
     chunk = SAMPLE_CHUNK if chunk is None else int(chunk)
     if Y.ndim == 3 and Y.shape[0] > chunk:
-        parts = [_gls_chi2(Y[a:a + chunk], P) for a in range(0, Y.shape[0], chunk)]
+        parts = [_gls_chi2(Y[a : a + chunk], P) for a in range(0, Y.shape[0], chunk)]
         return np.concatenate([m for m, _ in parts]), np.concatenate([c for _, c in parts])
     return _gls_chi2(Y, P)
 

@@ -6,6 +6,7 @@ Paule-Mandel value that brings chi^2_min down to the degrees of freedom, drawn i
 Carlo; ``birge``: the spread of the per-sample estimates scaled by sqrt(chi^2/dof).  With one
 worn interval (dof 0) agreement cannot be tested, and the note says that.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,8 +16,10 @@ from pipeline.adhesion_range.curves import CI_PCTS, censored_percentiles
 from pipeline.adhesion_range.gls import argmin_refined, gls_chi2, min_chi2, precision
 
 INCONSISTENCY_MODELS = ("random_effects", "birge")
-UNTESTABLE = ("one worn interval: whether the intervals agree cannot be tested, the interval of h rests on "
-              "the stated uncertainties alone. ")
+UNTESTABLE = (
+    "one worn interval: whether the intervals agree cannot be tested, the interval of h rests on "
+    "the stated uncertainties alone. "
+)
 
 
 def birge_ratio(chi2_min: float, dof: int) -> float:
@@ -48,7 +51,9 @@ def between_interval_variance(x, Yc, C, dof, iters=60):
 
 
 def _verdict(g: dict) -> str:
-    verdict = "mutually inconsistent" if g["p_value"] < 0.05 else "scattered a little more than their uncertainties allow"
+    verdict = (
+        "mutually inconsistent" if g["p_value"] < 0.05 else "scattered a little more than their uncertainties allow"
+    )
     return f"intervals {verdict} (chi2 = {g['chi2_min']:.3g} for {g['dof']} dof, p = {g['p_value']:.2g})"
 
 
@@ -88,7 +93,9 @@ def random_effects_if_inconsistent(g, x, Yc, Ys, C):
     _, xs, ms, edge = min_chi2(x, Yc, P)
     n_samples, _, n_intervals = Ys.shape
     # the random offsets of the Monte Carlo: seeded by the data's size (deterministic per file)
-    eps = np.sqrt(tau2) * np.random.default_rng([n_samples, n_intervals, 0x7A0]).standard_normal((n_samples, 1, n_intervals))
+    eps = np.sqrt(tau2) * np.random.default_rng([n_samples, n_intervals, 0x7A0]).standard_normal(
+        (n_samples, 1, n_intervals)
+    )
     ms_s, chi_s = gls_chi2(Ys + eps, P)
     xss, mss, _, edge_s = argmin_refined(x, chi_s, ms_s)
     g["h_unscaled"], g["W_A_unscaled"] = g["h"], g["W_A"]
@@ -100,11 +107,15 @@ def random_effects_if_inconsistent(g, x, Yc, Ys, C):
     def widening(p, p0):
         return float(np.log(p[-1] / p[0]) / np.log(p0[-1] / p0[0]))
 
-    g["ci_widening_h"] = widening(g["h_pcts"], g["h_pcts_unscaled"]) if np.all(np.isfinite(g["h_pcts"][[0, -1]])) else np.inf
+    g["ci_widening_h"] = (
+        widening(g["h_pcts"], g["h_pcts_unscaled"]) if np.all(np.isfinite(g["h_pcts"][[0, -1]])) else np.inf
+    )
     g["ci_widening_W"] = widening(g["W_pcts"], g["W_pcts_unscaled"])
-    g["note"] += (f"{_verdict(g)}: a between-interval scatter of {100 * g['tau']:.1f} % in W_A was added to every interval "
-                  f"(random effects), which moved h from {g['h_unscaled'] * 1e9:.3g} to {g['h'] * 1e9:.3g} nm and widened the "
-                  f"95 % interval of h by {g['ci_widening_h']:.2f}x and of W_A by {g['ci_widening_W']:.2f}x. ")
+    g["note"] += (
+        f"{_verdict(g)}: a between-interval scatter of {100 * g['tau']:.1f} % in W_A was added to every interval "
+        f"(random effects), which moved h from {g['h_unscaled'] * 1e9:.3g} to {g['h'] * 1e9:.3g} nm and widened the "
+        f"95 % interval of h by {g['ci_widening_h']:.2f}x and of W_A by {g['ci_widening_W']:.2f}x. "
+    )
 
 
 def widen_if_inconsistent(g, x0, m0, xss, mss, edge_s, x):
@@ -135,4 +146,7 @@ def widen_if_inconsistent(g, x0, m0, xss, mss, edge_s, x):
     side = np.where(np.isfinite(xw) & (xw < x[0]), -1, np.where(np.isfinite(xw) & (xw > x[-1]), 1, edge_s))
     xw = np.where((xw < x[0]) | (xw > x[-1]), np.nan, xw)
     _percentiles(g, xw, mw, side)
-    g["note"] += f"{_verdict(g)}: the confidence intervals of h and W_A " f"are widened by the Birge ratio sqrt(chi2/dof) = {B:.2f}. "
+    g["note"] += (
+        f"{_verdict(g)}: the confidence intervals of h and W_A "
+        f"are widened by the Birge ratio sqrt(chi2/dof) = {B:.2f}. "
+    )

@@ -12,6 +12,7 @@ p_value, birge_ratio, tau, the widening of the CIs, the per-sample estimates and
 W_A at the estimate.  Root attributes: tip, source, laws, interval_order, conventions,
 solver_mode, mc_samples, E_star, ci_percentiles, min_slope, n_sigma_near_2, lj_z0_over_h.
 """
+
 from __future__ import annotations
 
 import h5py
@@ -25,21 +26,47 @@ from pipeline.inversion.laws import CONVENTIONS, LJ_Z0_OVER_H
 
 # what each interval's group repeats from the inversion (the InvOLS keys: inversion files written
 # since InvOLS is per interval)
-INTERVAL_KEYS = (("n", "1"), ("u_n", "1"), ("n_used", "1"), ("ln_Q_used", "1"), ("Q", "m^(n-1)"), ("R", "m"), ("S", "1"),
-                 ("F_p_mean", "N"), ("F_p_sem", "N"), ("F_p_std", "N"), ("n_curves", "1"),
-                 ("invols", "m/V"), ("u_invols", "m/V"), ("invols_method", "1"), ("invols_contact", "m/V"),
-                 ("u_invols_contact", "m/V"), ("invols_check", "1"))
+INTERVAL_KEYS = (
+    ("n", "1"),
+    ("u_n", "1"),
+    ("n_used", "1"),
+    ("ln_Q_used", "1"),
+    ("Q", "m^(n-1)"),
+    ("R", "m"),
+    ("S", "1"),
+    ("F_p_mean", "N"),
+    ("F_p_sem", "N"),
+    ("F_p_std", "N"),
+    ("n_curves", "1"),
+    ("invols", "m/V"),
+    ("u_invols", "m/V"),
+    ("invols_method", "1"),
+    ("invols_contact", "m/V"),
+    ("u_invols_contact", "m/V"),
+    ("invols_check", "1"),
+)
 
 
 def write_range_h5(out_h5, inv, results, *, tip="", source=""):
     """Write the stage-5 file from the inversion ``inv`` (``load_inversion``) and the per-law
     ``results`` of ``analyse_law``."""
     h = inv["h"]
-    with atomic_h5(out_h5, stage="adhesion_range", tip=tip, source=source, laws=list(results),
-                   interval_order=inv["order"], conventions=CONVENTIONS, solver_mode=inv["solver_mode"],
-                   mc_samples=int(inv["mc_samples"]), E_star=float(inv["E_star"]),
-                   ci_percentiles=list(CI_PCTS), min_slope=MIN_SLOPE, n_sigma_near_2=N_SIGMA_NEAR_2,
-                   lj_z0_over_h=LJ_Z0_OVER_H) as f:
+    with atomic_h5(
+        out_h5,
+        stage="adhesion_range",
+        tip=tip,
+        source=source,
+        laws=list(results),
+        interval_order=inv["order"],
+        conventions=CONVENTIONS,
+        solver_mode=inv["solver_mode"],
+        mc_samples=int(inv["mc_samples"]),
+        E_star=float(inv["E_star"]),
+        ci_percentiles=list(CI_PCTS),
+        min_slope=MIN_SLOPE,
+        n_sigma_near_2=N_SIGMA_NEAR_2,
+        lj_z0_over_h=LJ_Z0_OVER_H,
+    ) as f:
         write_dataset(f, "h_grid", h, "m", "adhesion range grid")
         write_dataset(f, "ci_percentiles", np.array(CI_PCTS), "1", "percentiles stored in *_pcts datasets")
         gi = create_group(f, "intervals")
@@ -79,7 +106,9 @@ def _write_reference(gl, ref: dict) -> None:
     gr = create_group(gl, "reference", intervals=ref["intervals"])
     write_dataset(gr, "W_ref", ref["W_ref"], "J/m^2", "reference W_A(h) (central)")
     write_dataset(gr, "W_ref_pcts", ref["W_ref_pcts"], "J/m^2", "percentiles (ci_percentiles) of W_ref(h)")
-    write_dataset(gr, "max_rel_change", ref["max_rel_change"], "1", "(max - min)/median of W_ref(h) over h >= flatness_h_min")
+    write_dataset(
+        gr, "max_rel_change", ref["max_rel_change"], "1", "(max - min)/median of W_ref(h) over h >= flatness_h_min"
+    )
     write_dataset(gr, "flatness_h_min", ref["flatness_h_min"], "m", "lower end of the flatness check")
 
 
@@ -87,11 +116,21 @@ def _write_crossing(gint, nm: str, info: dict, dl: dict) -> None:
     g = create_group(gint, nm, status=info["status"], note=info.get("note", ""), side=info.get("side", ""))
     write_dataset(g, "h_cross", info.get("h", np.nan), "m", "crossing with the reference (NaN unless status ok)")
     write_dataset(g, "crossings", np.asarray(info.get("crossings", []), float), "m", "all roots on the central curves")
-    write_dataset(g, "h_pcts", info.get("h_pcts", np.full(len(CI_PCTS), np.nan)), "m",
-                  "percentiles of the per-sample crossings (NaN: open, censored at the grid edge)")
+    write_dataset(
+        g,
+        "h_pcts",
+        info.get("h_pcts", np.full(len(CI_PCTS), np.nan)),
+        "m",
+        "percentiles of the per-sample crossings (NaN: open, censored at the grid edge)",
+    )
     write_dataset(g, "slope", info.get("slope", np.nan), "1", "|d ln(W/W_ref)/d ln h| at the crossing")
-    write_dataset(g, "crossing_fraction", info.get("crossing_fraction", np.nan), "1",
-                  "fraction of MC samples with a crossing inside the grid")
+    write_dataset(
+        g,
+        "crossing_fraction",
+        info.get("crossing_fraction", np.nan),
+        "1",
+        "fraction of MC samples with a crossing inside the grid",
+    )
     if "h_samples" in info:
         write_dataset(g, "h_samples", info["h_samples"], "m", "per-sample crossing (NaN: none in grid)")
     write_dataset(g, "W_A", dl["W_A"], "J/m^2", "central W_A(h) (copied from the inversion)")
@@ -100,7 +139,9 @@ def _write_crossing(gint, nm: str, info: dict, dl: dict) -> None:
 
 
 def _write_global(gl, gg: dict, ref, h) -> None:
-    g = create_group(gl, "global", status=gg.get("status", ""), note=gg.get("note", ""), intervals_used=gg["intervals_used"])
+    g = create_group(
+        gl, "global", status=gg.get("status", ""), note=gg.get("note", ""), intervals_used=gg["intervals_used"]
+    )
     write_dataset(g, "h", gg["h"], "m", "global h (argmin chi2)")
     write_dataset(g, "W_A", gg["W_A"], "J/m^2", "common W_A at the global h")
     write_dataset(g, "h_pcts", gg["h_pcts"], "m", "percentiles of per-sample global h (NaN: open at grid edge)")
@@ -110,12 +151,24 @@ def _write_global(gl, gg: dict, ref, h) -> None:
     write_dataset(g, "chi2_min", gg["chi2_min"], "1")
     write_dataset(g, "dof", gg["dof"], "1", "number of intervals used - 2")
     write_dataset(g, "p_value", gg.get("p_value", np.nan), "1", "chi2 survival probability")
-    write_dataset(g, "birge_ratio", gg.get("birge_ratio", np.nan), "1",
-                  "max(1, sqrt(chi2_min/dof)) (NaN: dof 0); the CIs are scaled by it only with inconsistency: birge")
-    write_dataset(g, "tau", gg.get("tau", np.nan), "1",
-                  "between-interval scatter of ln W_A added to every interval (random effects; 0: consistent)")
-    for key, desc in (("ci_widening_h", "ratio of the widths of the 95 % interval of h with and without tau"),
-                      ("ci_widening_W", "the same for W_A")):
+    write_dataset(
+        g,
+        "birge_ratio",
+        gg.get("birge_ratio", np.nan),
+        "1",
+        "max(1, sqrt(chi2_min/dof)) (NaN: dof 0); the CIs are scaled by it only with inconsistency: birge",
+    )
+    write_dataset(
+        g,
+        "tau",
+        gg.get("tau", np.nan),
+        "1",
+        "between-interval scatter of ln W_A added to every interval (random effects; 0: consistent)",
+    )
+    for key, desc in (
+        ("ci_widening_h", "ratio of the widths of the 95 % interval of h with and without tau"),
+        ("ci_widening_W", "the same for W_A"),
+    ):
         write_dataset(g, key, gg.get(key, 1.0), "1", desc)
     if "h_pcts_unscaled" in gg:
         write_dataset(g, "h_pcts_unscaled", gg["h_pcts_unscaled"], "m", "h percentiles before the widening")
@@ -126,7 +179,9 @@ def _write_global(gl, gg: dict, ref, h) -> None:
     if "h_samples" in gg:
         write_dataset(g, "h_samples", gg["h_samples"], "m", "per-sample global h")
         write_dataset(g, "W_samples", gg["W_samples"], "J/m^2", "per-sample common W_A")
-        write_dataset(g, "edge_fraction", gg["edge_fraction"], "1", "fraction of samples with the minimum at a grid end")
+        write_dataset(
+            g, "edge_fraction", gg["edge_fraction"], "1", "fraction of samples with the minimum at a grid end"
+        )
     if ref is not None:
         hv = gg["h"] if np.isfinite(gg["h"]) else float(np.exp(np.median(np.log(h))))
         w, pc = reference_at(ref, h, hv)
@@ -151,7 +206,11 @@ def load_range(path) -> dict:
         for nm in out["order"]:
             g = f["intervals"][nm]
             d = {k: read_dataset(g, k)[0] for k in g}
-            d.update(scans=int(g.attrs["scans"]), reference=bool(g.attrs["reference"]), n_flag=str(read_attr_json(g, "n_flag")))
+            d.update(
+                scans=int(g.attrs["scans"]),
+                reference=bool(g.attrs["reference"]),
+                n_flag=str(read_attr_json(g, "n_flag")),
+            )
             out["intervals"][nm] = d
         for law in out["law_order"]:
             out["laws"][law] = _read_law(f["laws"][law], out["order"])
@@ -166,13 +225,20 @@ def _read_law(gl, order) -> dict:
     for nm in order:
         g = gl["intervals"][nm]
         d = {k: read_dataset(g, k)[0] for k in g}
-        d.update(status=str(read_attr_json(g, "status")), note=str(read_attr_json(g, "note")), side=str(read_attr_json(g, "side")))
+        d.update(
+            status=str(read_attr_json(g, "status")),
+            note=str(read_attr_json(g, "note")),
+            side=str(read_attr_json(g, "side")),
+        )
         law["intervals"][nm] = d
     if "global" in gl:
         g = gl["global"]
         glob = {k: read_dataset(g, k)[0] for k in g}
-        glob.update(status=str(read_attr_json(g, "status")), note=str(read_attr_json(g, "note")),
-                    intervals_used=read_attr_json(g, "intervals_used"))
+        glob.update(
+            status=str(read_attr_json(g, "status")),
+            note=str(read_attr_json(g, "note")),
+            intervals_used=read_attr_json(g, "intervals_used"),
+        )
         if isinstance(glob["intervals_used"], str):
             glob["intervals_used"] = [glob["intervals_used"]] if glob["intervals_used"] else []
         law["global"] = glob

@@ -4,6 +4,7 @@ W_ref(h) is the inverse-variance weighted mean of ln W_A(h) of the reference int
 from the Monte-Carlo variance at each h), per MC sample too; its variation over the grid (the
 paper's check that it is nearly constant for h >= 0.3 nm) is reported.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -6,6 +6,7 @@ empty cell and the reason is in the matching ``status``/``note`` column.  Confid
 intervals (``*_low``/``*_high``) are the 2.5th/97.5th percentiles of the Monte-Carlo
 estimates (``ci_level`` = 0.95); ``u_*`` is half the 16-84 % spread (1 sigma).
 """
+
 from __future__ import annotations
 
 import csv
@@ -75,20 +76,53 @@ def _write_csv(path, columns, rows):
 
 def tip_report_columns(laws) -> list:
     """Columns of the per-tip interval table (units in the names)."""
-    cols = ["tip", "interval", "scans", "reference", "n", "u_n", "n_flag", "R_nm", "S", "Q_nm_pow_n_minus_1",
-            "F_p_nN", "u_F_p_nN", "F_p_sd_nN", "n_curves", "invols_nm_per_V", "u_invols_nm_per_V", "invols_method",
-            "invols_contact_nm_per_V", "u_invols_contact_nm_per_V", "invols_check"]
+    cols = [
+        "tip",
+        "interval",
+        "scans",
+        "reference",
+        "n",
+        "u_n",
+        "n_flag",
+        "R_nm",
+        "S",
+        "Q_nm_pow_n_minus_1",
+        "F_p_nN",
+        "u_F_p_nN",
+        "F_p_sd_nN",
+        "n_curves",
+        "invols_nm_per_V",
+        "u_invols_nm_per_V",
+        "invols_method",
+        "invols_contact_nm_per_V",
+        "u_invols_contact_nm_per_V",
+        "invols_check",
+    ]
     for law in laws:
-        cols += [f"W_A_{law}_mJ_per_m2", f"h_{law}_nm", f"h_{law}_low_nm", f"h_{law}_high_nm",
-                 f"h_{law}_status", f"h_{law}_crossings_nm", f"h_{law}_note"]
+        cols += [
+            f"W_A_{law}_mJ_per_m2",
+            f"h_{law}_nm",
+            f"h_{law}_low_nm",
+            f"h_{law}_high_nm",
+            f"h_{law}_status",
+            f"h_{law}_crossings_nm",
+            f"h_{law}_note",
+        ]
         if law == "tri2":
             cols += ["h_tri2_full_range_nm"]
         if law == "lj":
             cols += ["z0_lj_nm"]
         if law != "dugdale":
             cols += [f"model_{law}_at_estimate"]
-    cols += ["h_estimate_dugdale_nm", "Lambda_at_estimate", "Lambda_boundary", "rigid_valid", "model_used_at_estimate",
-             "maugis_lambda_at_estimate", "ci_level"]
+    cols += [
+        "h_estimate_dugdale_nm",
+        "Lambda_at_estimate",
+        "Lambda_boundary",
+        "rigid_valid",
+        "model_used_at_estimate",
+        "maugis_lambda_at_estimate",
+        "ci_level",
+    ]
     return cols
 
 
@@ -114,11 +148,21 @@ def _interval_cells(tip: str, nm: str, d: dict) -> dict:
     n_used = float(d["n_used"])
     q_nm = float(d["Q"]) / (1e-9) ** (n_used - 1.0) if np.isfinite(n_used) else np.nan
     row = {
-        "tip": tip, "interval": nm, "scans": int(d["scans"]), "reference": bool(d["reference"]),
-        "n": float(d["n"]), "u_n": float(d["u_n"]), "n_flag": d["n_flag"], "R_nm": _nm(d["R"]), "S": float(d["S"]),
+        "tip": tip,
+        "interval": nm,
+        "scans": int(d["scans"]),
+        "reference": bool(d["reference"]),
+        "n": float(d["n"]),
+        "u_n": float(d["u_n"]),
+        "n_flag": d["n_flag"],
+        "R_nm": _nm(d["R"]),
+        "S": float(d["S"]),
         "Q_nm_pow_n_minus_1": float(np.exp(d["ln_Q_used"]) / (1e-9) ** (n_used - 1.0)) if np.isfinite(n_used) else q_nm,
-        "F_p_nN": to_unit(float(d["F_p_mean"]), "nN"), "u_F_p_nN": to_unit(float(d["F_p_sem"]), "nN"),
-        "F_p_sd_nN": to_unit(float(d["F_p_std"]), "nN"), "n_curves": int(d["n_curves"]), "ci_level": CI_LEVEL,
+        "F_p_nN": to_unit(float(d["F_p_mean"]), "nN"),
+        "u_F_p_nN": to_unit(float(d["F_p_sem"]), "nN"),
+        "F_p_sd_nN": to_unit(float(d["F_p_std"]), "nN"),
+        "n_curves": int(d["n_curves"]),
+        "ci_level": CI_LEVEL,
     }
     for key in ("invols", "u_invols", "invols_contact", "u_invols_contact"):
         if key in d:
@@ -134,7 +178,11 @@ def _law_cells(law: str, L: dict, nm: str, d: dict, h) -> dict:
     g = L.get("global", {})
     hv = float(g.get("h", np.nan)) if g else np.nan
     st = iv["status"]
-    row = {f"W_A_{law}_mJ_per_m2": _mj(_interp_ln(h, iv["W_A"], hv)), f"h_{law}_status": st, f"h_{law}_note": iv.get("note", "")}
+    row = {
+        f"W_A_{law}_mJ_per_m2": _mj(_interp_ln(h, iv["W_A"], hv)),
+        f"h_{law}_status": st,
+        f"h_{law}_note": iv.get("note", ""),
+    }
     cr = np.atleast_1d(iv.get("crossings", []))
     row[f"h_{law}_crossings_nm"] = ";".join(f"{_nm(c):.4g}" for c in cr if np.isfinite(c)) if st != "reference" else ""
     if st == "ok":
@@ -143,8 +191,10 @@ def _law_cells(law: str, L: dict, nm: str, d: dict, h) -> dict:
         row[f"h_{law}_high_nm"] = _nm(iv["h_pcts"][_I_HI])
         open_sides = [s for s, i in (("lower", _I_LO), ("upper", _I_HI)) if not np.isfinite(iv["h_pcts"][i])]
         if open_sides:
-            row[f"h_{law}_note"] = (f"95 % CI open on the {' and '.join(open_sides)} side (MC crossings beyond "
-                                    f"the h grid; crossing fraction {float(iv['crossing_fraction']):.2f})")
+            row[f"h_{law}_note"] = (
+                f"95 % CI open on the {' and '.join(open_sides)} side (MC crossings beyond "
+                f"the h grid; crossing fraction {float(iv['crossing_fraction']):.2f})"
+            )
         if law == "tri2":
             row["h_tri2_full_range_nm"] = 2.0 * _nm(iv["h_cross"])
         if law == "lj":
@@ -180,13 +230,41 @@ def write_tip_report(range_h5, out_csv, *, tip: str = ""):
 
 
 SUMMARY_COLUMNS = [
-    "tip", "law", "solver_mode", "W_A_mJ_per_m2", "u_W_A_mJ_per_m2", "W_A_low_mJ_per_m2", "W_A_high_mJ_per_m2",
-    "h_nm", "u_h_nm", "h_low_nm", "h_high_nm", "h_full_range_nm", "h_full_range_low_nm", "h_full_range_high_nm",
-    "z0_lj_nm", "h_crossings_min_nm", "h_crossings_max_nm", "W_A_ref_mJ_per_m2", "u_W_A_ref_mJ_per_m2",
-    "W_A_ref_max_rel_change_over_h", "n_intervals_used", "n_intervals_crossing", "chi2", "dof", "p_value",
-    "ci_scale_birge", "between_interval_scatter_percent", "ci_widening_h", "ci_widening_W_A",
-    "h_change_per_reference_percent", "ci_level",
-    "h_convention", "model_at_estimate", "status", "notes",
+    "tip",
+    "law",
+    "solver_mode",
+    "W_A_mJ_per_m2",
+    "u_W_A_mJ_per_m2",
+    "W_A_low_mJ_per_m2",
+    "W_A_high_mJ_per_m2",
+    "h_nm",
+    "u_h_nm",
+    "h_low_nm",
+    "h_high_nm",
+    "h_full_range_nm",
+    "h_full_range_low_nm",
+    "h_full_range_high_nm",
+    "z0_lj_nm",
+    "h_crossings_min_nm",
+    "h_crossings_max_nm",
+    "W_A_ref_mJ_per_m2",
+    "u_W_A_ref_mJ_per_m2",
+    "W_A_ref_max_rel_change_over_h",
+    "n_intervals_used",
+    "n_intervals_crossing",
+    "chi2",
+    "dof",
+    "p_value",
+    "ci_scale_birge",
+    "between_interval_scatter_percent",
+    "ci_widening_h",
+    "ci_widening_W_A",
+    "h_change_per_reference_percent",
+    "ci_level",
+    "h_convention",
+    "model_at_estimate",
+    "status",
+    "notes",
 ]
 
 
@@ -211,7 +289,13 @@ def summary_rows(rng: dict) -> list:
 def _summary_row(rng: dict, law: str) -> dict:
     L = rng["laws"][law]
     g = L.get("global", {})
-    row = {"tip": rng["tip"], "law": law, "solver_mode": rng["solver_mode"], "ci_level": CI_LEVEL, "h_convention": CONVENTIONS[law]}
+    row = {
+        "tip": rng["tip"],
+        "law": law,
+        "solver_mode": rng["solver_mode"],
+        "ci_level": CI_LEVEL,
+        "h_convention": CONVENTIONS[law],
+    }
     status = g.get("status", "no_reference") if g else "no_reference"
     notes = _global_cells(row, g, law, status) if g else []
     ref = L.get("reference")
@@ -274,8 +358,10 @@ def _crossing_cells(row: dict, L: dict, status: str) -> list:
     slopes = [float(iv["slope"]) for iv in L["intervals"].values() if iv["status"] == "ok" and float(iv["slope"]) > 0]
     if slopes and status == "ok":
         row["h_change_per_reference_percent"] = float(np.median(1.0 / np.asarray(slopes)))
-        notes.append(f"h rests on the reference interval: a 1 % error of its W_A (its pull-off or R) moves h by "
-                     f"{row['h_change_per_reference_percent']:.2g} %, which the agreement of the intervals reveals only in part")
+        notes.append(
+            f"h rests on the reference interval: a 1 % error of its W_A (its pull-off or R) moves h by "
+            f"{row['h_change_per_reference_percent']:.2g} %, which the agreement of the intervals reveals only in part"
+        )
     crossings = [float(iv["h_cross"]) for iv in L["intervals"].values() if iv["status"] == "ok"]
     row["n_intervals_crossing"] = len(crossings)
     if crossings:
@@ -289,8 +375,10 @@ def _tip_notes(rng: dict, L: dict, law: str) -> list:
     notes = []
     flagged = [nm for nm in rng["order"] if str(rng["intervals"][nm].get("invols_check", ""))]
     if flagged:
-        notes.append(f"InvOLS in use disagrees with the contact slope in {', '.join(flagged)} (invols_check in "
-                     f"{rng['tip']}_report.csv): a remount without a new InvOLS, or a soft counter-surface")
+        notes.append(
+            f"InvOLS in use disagrees with the contact slope in {', '.join(flagged)} (invols_check in "
+            f"{rng['tip']}_report.csv): a remount without a new InvOLS, or a soft counter-surface"
+        )
     notes += implausible_forces({nm: float(rng["intervals"][nm].get("F_p_mean", np.nan)) for nm in rng["order"]})
     bad = [f"{nm}: {iv['status']}" for nm, iv in L["intervals"].items() if iv["status"] not in ("ok", "reference")]
     if bad:

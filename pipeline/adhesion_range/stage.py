@@ -1,5 +1,6 @@
 """Stage 5 entry point: a tip's inversion -> reference W_A, per-interval crossings, global h and
 W_A per traction law (``adhesion_range.h5``), the per-tip CSV and, if asked, the figures."""
+
 from __future__ import annotations
 
 import logging
@@ -16,8 +17,17 @@ from pipeline.inversion.io import load_inversion
 log = logging.getLogger(__name__)
 
 
-def run_adhesion_range(inversion_h5, out_h5, report_csv=None, fig_dir=None, *, tip: str = "",
-                       w_of_h_png=None, adhesion_map_png=None, inconsistency: str = "random_effects"):
+def run_adhesion_range(
+    inversion_h5,
+    out_h5,
+    report_csv=None,
+    fig_dir=None,
+    *,
+    tip: str = "",
+    w_of_h_png=None,
+    adhesion_map_png=None,
+    inconsistency: str = "random_effects",
+):
     """Stage 5: reference W_A, per-interval crossings, global h and W_A per traction law.
 
     Writes ``out_h5``; if given, the per-tip report CSV (``pipeline.adhesion_range.report``) and
@@ -30,7 +40,9 @@ def run_adhesion_range(inversion_h5, out_h5, report_csv=None, fig_dir=None, *, t
     results = {}
     for j, law in enumerate(inv["laws"]):
         results[law] = analyse_law(inv, law, inconsistency)
-        log.info("%s: law %d/%d (%s) analysed, %.1f s so far", tip, j + 1, len(inv["laws"]), law, time.perf_counter() - t0)
+        log.info(
+            "%s: law %d/%d (%s) analysed, %.1f s so far", tip, j + 1, len(inv["laws"]), law, time.perf_counter() - t0
+        )
     for law, res in results.items():
         _log_law(tip, law, res)
     write_range_h5(out_h5, inv, results, tip=tip, source=str(inversion_h5))
@@ -54,13 +66,31 @@ def _log_law(tip: str, law: str, res: dict) -> None:
     """Each interval's status and crossing, and the global estimate, in plain lines."""
     g = res.get("global", {})
     for nm, info in res["intervals"].items():
-        log.info("%s %s %s: %s%s%s", tip, law, nm, info["status"],
-                 f", crosses the reference at h = {info['h'] * 1e9:.3g} nm" if np.isfinite(info.get("h", np.nan)) else "",
-                 f" ({info['note']})" if info.get("note") else "")
+        log.info(
+            "%s %s %s: %s%s%s",
+            tip,
+            law,
+            nm,
+            info["status"],
+            f", crosses the reference at h = {info['h'] * 1e9:.3g} nm" if np.isfinite(info.get("h", np.nan)) else "",
+            f" ({info['note']})" if info.get("note") else "",
+        )
     if g.get("status") == "ok":
         hp, wp = g["h_pcts"], g["W_pcts"]
-        log.info("%s %s: h = %.3g nm [%.3g, %.3g], W_A = %.4g mJ/m^2 [%.4g, %.4g] (95 %% Monte Carlo percentiles; "
-                 "chi2 %.3g for %d dof; %s)", tip, law, g["h"] * 1e9, hp[0] * 1e9, hp[-1] * 1e9, g["W_A"] * 1e3,
-                 wp[0] * 1e3, wp[-1] * 1e3, g["chi2_min"], g["dof"], g.get("note", "").strip() or "consistent")
+        log.info(
+            "%s %s: h = %.3g nm [%.3g, %.3g], W_A = %.4g mJ/m^2 [%.4g, %.4g] (95 %% Monte Carlo percentiles; "
+            "chi2 %.3g for %d dof; %s)",
+            tip,
+            law,
+            g["h"] * 1e9,
+            hp[0] * 1e9,
+            hp[-1] * 1e9,
+            g["W_A"] * 1e3,
+            wp[0] * 1e3,
+            wp[-1] * 1e3,
+            g["chi2_min"],
+            g["dof"],
+            g.get("note", "").strip() or "consistent",
+        )
     else:
         log.info("%s %s: %s %s", tip, law, g.get("status", res.get("status", "")), g.get("note", ""))

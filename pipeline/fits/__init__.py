@@ -38,6 +38,7 @@ Flags: "n_below_1.5", "residual_above_pixel" (RMS residual > 2 pixel sizes),
 "few_points" (< 12 points), "not_converged", "n_at_bound", "edge_turns_back" (more than a
 quarter of the window's points turn back).
 """
+
 from pipeline.fits.result import FitError, PowerLawFit
 
 __all__ = ["FitError", "PowerLawFit"]

@@ -1,4 +1,5 @@
 """Stage 2's figure: the profiles and power-law fits of all intervals of a tip."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -27,8 +28,13 @@ def plot_tip_fits(fit_h5_paths, out_png, labels=None) -> None:
         rr = np.linspace(0, max(fit.r.max(), 1e-12), 200)
         flag = " (flagged)" if fit.flags else ""
         zm, e, xa = (fit.z_model(rr) - fit.z0) * 1e9, fit.flank_asymmetry, fit.axis_offset
-        ax.plot((xa + (1 + e) * rr) * 1e9, zm, "-", color=col,
-                label=f"{lab}: n = {fit.n:.2f}, R = {fit.R * 1e9:.1f} nm{flag}")
+        ax.plot(
+            (xa + (1 + e) * rr) * 1e9,
+            zm,
+            "-",
+            color=col,
+            label=f"{lab}: n = {fit.n:.2f}, R = {fit.R * 1e9:.1f} nm{flag}",
+        )
         ax.plot((xa - (1 - e) * rr) * 1e9, zm, "-", color=col)
     ax.set_xlabel("r (nm)")
     ax.set_ylabel("z (nm)")

@@ -9,6 +9,7 @@ at 2) of the combined profile, used for a reference interval whose n is consiste
 (``pipeline.inversion.shape.shape_for_inversion``).  A fit that could not be done is a group with
 attribute ``failed``.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -48,12 +49,22 @@ def _write_fit(group, fit: PowerLawFit):
     w(group, "z0", fit.z0, "m", "fitted apex offset")
     w(group, "cov_n_lnQ", fit.cov_n_lnQ, "1", "covariance of (n, ln Q)")
     w(group, "axis_offset", fit.axis_offset, "m", "common axis of the two flanks from the profile's axis")
-    w(group, "flank_asymmetry", fit.flank_asymmetry, "1",
-      "e of the flank-wise fit: right flank (1 + e) r(z), left (1 - e) r(z), r(z) the power law (Eq. 1)")
+    w(
+        group,
+        "flank_asymmetry",
+        fit.flank_asymmetry,
+        "1",
+        "e of the flank-wise fit: right flank (1 + e) r(z), left (1 - e) r(z), r(z) the power law (Eq. 1)",
+    )
     if fit.edge_noise_fraction is not None:
-        w(group, "edge_noise_fraction", fit.edge_noise_fraction, "1",
-          "share of the residual variance explained by the silhouette fit's edge noise "
-          "(cov = propagated edge covariance + (1 - share) x residual covariance)")
+        w(
+            group,
+            "edge_noise_fraction",
+            fit.edge_noise_fraction,
+            "1",
+            "share of the residual variance explained by the silhouette fit's edge noise "
+            "(cov = propagated edge covariance + (1 - share) x residual covariance)",
+        )
     w(group, "rms_residual", fit.rms_residual, "m", "RMS orthogonal residual")
     w(group, "fit_error_percent", fit.fit_error_percent, "%", "100 x RMS residual / fit_height")
     w(group, "fit_height", fit.fit_height, "m", "fit window above the apex")
@@ -61,10 +72,20 @@ def _write_fit(group, fit: PowerLawFit):
     w(group, "z", fit.z, "m", "height of the points used")
     if fit.flank is not None:
         w(group, "flank", fit.flank.astype(np.int8), "1", "-1 left, +1 right flank of each point")
-    w(group, "flags", np.array(fit.flags, dtype=object) if fit.flags else np.array([], dtype=object), "1",
-      "quality flags; empty = usable")
-    w(group, "notes", np.array(fit.notes, dtype=object) if fit.notes else np.array([], dtype=object), "1",
-      "what the screening of the profile left out (turned-back edge, contamination on one flank), in words")
+    w(
+        group,
+        "flags",
+        np.array(fit.flags, dtype=object) if fit.flags else np.array([], dtype=object),
+        "1",
+        "quality flags; empty = usable",
+    )
+    w(
+        group,
+        "notes",
+        np.array(fit.notes, dtype=object) if fit.notes else np.array([], dtype=object),
+        "1",
+        "what the screening of the profile left out (turned-back edge, contamination on one flank), in words",
+    )
     group.attrs["flagged"] = bool(fit.flags)
 
 
@@ -75,25 +96,49 @@ def read_fit(fit_h5, group="fit"):
     with h5py.File(fit_h5, "r") as f:
         g = f[group]
         v = {k: g[k][()] for k in g}
-    flags = [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(v["flags"])] if v["flags"].size else []
+    flags = (
+        [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(v["flags"])] if v["flags"].size else []
+    )
     nts = np.atleast_1d(v.get("notes", np.array([], dtype=object)))
     notes = [x.decode() if isinstance(x, bytes) else str(x) for x in nts] if nts.size else []
     cov = np.asarray(v["cov_n_lnQ"], float)
     sd = np.sqrt(np.where(np.isfinite(np.diag(cov)) & (np.diag(cov) >= 0), np.diag(cov), np.nan))
     enf = v.get("edge_noise_fraction")
-    return PowerLawFit(n=float(v["n"]), Q=float(v["Q"]), ln_Q=float(v["ln_Q"]), R=float(v["R"]), S=float(v["S"]),
-                       z0=float(v["z0"]), cov_n_lnQ=cov, rms_residual=float(v["rms_residual"]),
-                       fit_error_percent=float(v["fit_error_percent"]), fit_height=float(v["fit_height"]),
-                       r=v["r"], z=v["z"], flags=flags, notes=notes, flank=v.get("flank"), sigma_n=float(sd[0]),
-                       sigma_lnQ=float(sd[1]), edge_noise_fraction=None if enf is None else float(enf),
-                       axis_offset=float(v.get("axis_offset", 0.0)), flank_asymmetry=float(v.get("flank_asymmetry", 0.0)))
+    return PowerLawFit(
+        n=float(v["n"]),
+        Q=float(v["Q"]),
+        ln_Q=float(v["ln_Q"]),
+        R=float(v["R"]),
+        S=float(v["S"]),
+        z0=float(v["z0"]),
+        cov_n_lnQ=cov,
+        rms_residual=float(v["rms_residual"]),
+        fit_error_percent=float(v["fit_error_percent"]),
+        fit_height=float(v["fit_height"]),
+        r=v["r"],
+        z=v["z"],
+        flags=flags,
+        notes=notes,
+        flank=v.get("flank"),
+        sigma_n=float(sd[0]),
+        sigma_lnQ=float(sd[1]),
+        edge_noise_fraction=None if enf is None else float(enf),
+        axis_offset=float(v.get("axis_offset", 0.0)),
+        flank_asymmetry=float(v.get("flank_asymmetry", 0.0)),
+    )
 
 
 def write_fit_h5(out_h5, fits: dict, paraboloid, *, source, tip="", interval="") -> None:
     """Write the fit file (module doc, atomic): ``fits`` {"combined"|"left"|"right": PowerLawFit or
     None (failed)}, ``paraboloid`` the n = 2 fit of the combined profile or None (failed)."""
-    with h5io.atomic_h5(out_h5, stage="fit", tip=tip, interval=interval, source=str(source),
-                        model="z = z0 + |r|^n/(nQ) (Eq. 1); R from Eq. 2") as f:
+    with h5io.atomic_h5(
+        out_h5,
+        stage="fit",
+        tip=tip,
+        interval=interval,
+        source=str(source),
+        model="z = z0 + |r|^n/(nQ) (Eq. 1); R from Eq. 2",
+    ) as f:
         for name, gname in GROUPS:
             if fits[name] is None:
                 h5io.create_group(f, gname, failed=True)
@@ -103,8 +148,10 @@ def write_fit_h5(out_h5, fits: dict, paraboloid, *, source, tip="", interval="")
         c = fits["combined"]
         f.attrs["flagged"] = bool(c.flags)
         if paraboloid is not None:
-            _write_fit(h5io.create_group(f, PARABOLOID_GROUP, model="paraboloid z = z0 + r^2/(2R): n held at 2, Q = R"),
-                       paraboloid)
+            _write_fit(
+                h5io.create_group(f, PARABOLOID_GROUP, model="paraboloid z = z0 + r^2/(2R): n held at 2, Q = R"),
+                paraboloid,
+            )
         else:
             h5io.create_group(f, PARABOLOID_GROUP, failed=True)
 
@@ -140,8 +187,18 @@ def load_fit(path) -> dict:
             flags = [flags.decode() if isinstance(flags, bytes) else flags]
         flags = [str(x) for x in np.atleast_1d(flags) if str(x)]
         rms = read_value(g, "rms_residual", np.nan)
-    return {"n": n, "u_n": float(np.sqrt(max(cov[0, 0], 0.0))), "ln_Q": ln_q, "Q": q, "R": r, "S": s, "cov_n_lnQ": cov,
-            "rms_residual": float(rms), "flags": flags, "paraboloid": para}
+    return {
+        "n": n,
+        "u_n": float(np.sqrt(max(cov[0, 0], 0.0))),
+        "ln_Q": ln_q,
+        "Q": q,
+        "R": r,
+        "S": s,
+        "cov_n_lnQ": cov,
+        "rms_residual": float(rms),
+        "flags": flags,
+        "paraboloid": para,
+    }
 
 
 def _read_paraboloid(f):
@@ -151,5 +208,13 @@ def _read_paraboloid(f):
     gp = f[PARABOLOID_GROUP]
     cp = np.asarray(gp["cov_n_lnQ"][()], float).reshape(2, 2)
     fl = [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(gp["flags"][()])]
-    return {"n": 2.0, "u_n": 0.0, "ln_Q": float(gp["ln_Q"][()]), "Q": float(gp["Q"][()]), "R": float(gp["R"][()]),
-            "cov_n_lnQ": cp, "rms_residual": float(gp["rms_residual"][()]), "flags": [x for x in fl if x]}
+    return {
+        "n": 2.0,
+        "u_n": 0.0,
+        "ln_Q": float(gp["ln_Q"][()]),
+        "Q": float(gp["Q"][()]),
+        "R": float(gp["R"][()]),
+        "cov_n_lnQ": cp,
+        "rms_residual": float(gp["rms_residual"][()]),
+        "flags": [x for x in fl if x],
+    }

@@ -1,5 +1,6 @@
 """The power-law model z = z0 + |r|^n/(nQ) (Eq. 1) and its least-squares fit with covariance
 (package doc); the rigid Dugdale area of Eq. 12 from (n, Q)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -112,6 +113,7 @@ def edge_covariance_of_params(jac, dres_doffset, basis, cov_c):
     var_res = np.einsum("ij,jk,ik->i", R, cov_c, R)
     return M @ cov_c @ M.T, var_res
 
+
 def _r_h(fit):
     """Radius (m) at fit_height above z0 of a PowerLawFit: (n Q h)^(1/n)."""
     return float((fit.n * fit.Q * fit.fit_height) ** (1.0 / fit.n))
@@ -131,15 +133,34 @@ def _least_squares(rs, zs, hs, side, fixed_n, loss, sc):
         return v
 
     kw = {} if loss is None else dict(loss=loss[0], f_scale=loss[1] / sc)  # robust: screening only
-    res = optimize.least_squares(lambda q: _residuals(full(q), rs, zs, hs, side), p0[free],
-                                 bounds=(np.take(lb, free), np.take(ub, free)), x_scale="jac", method="trf",
-                                 max_nfev=500, **kw)
+    res = optimize.least_squares(
+        lambda q: _residuals(full(q), rs, zs, hs, side),
+        p0[free],
+        bounds=(np.take(lb, free), np.take(ub, free)),
+        x_scale="jac",
+        method="trf",
+        max_nfev=500,
+        **kw,
+    )
     return res, full(res.x), free
 
 
-def _fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_scale=1e-9,
-                   edge_basis=None, edge_cov=None, normal_rz=None, fixed_n=None, flank=None, loss=None,
-                   systematic_px=0.0) -> PowerLawFit:
+def _fit_power_law(
+    r,
+    z,
+    fit_height=6e-9,
+    S=1.0,
+    pixel_size=None,
+    groups=None,
+    r_scale=1e-9,
+    edge_basis=None,
+    edge_cov=None,
+    normal_rz=None,
+    fixed_n=None,
+    flank=None,
+    loss=None,
+    systematic_px=0.0,
+) -> PowerLawFit:
     """Least-squares fit of z = z0 + |r|^n/(nQ) (Eq. 1) to points with z <= fit_height.
 
     r, z in m (r >= 0 measured from the axis, z from the profile's apex);
@@ -168,8 +189,9 @@ def _fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r
     n, lrh, z0s = pf[:3]
     e = res.fun
     flags = []
-    cov_p, edge_part = _param_covariance(res, pf, free, groups, side, edge, (rs, zs, hs, sc), pixel_size,
-                                         systematic_px, flags)
+    cov_p, edge_part = _param_covariance(
+        res, pf, free, groups, side, edge, (rs, zs, hs, sc), pixel_size, systematic_px, flags
+    )
     # (n, ln r_h) -> (n, ln Q) in SI:  ln Q = n ln r_h - ln n - ln h  (lengths in m)
     lrh_si = lrh + np.log(sc)
     ln_Q = n * lrh_si - np.log(n) - np.log(h)
@@ -179,13 +201,27 @@ def _fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r
     R = float((Q / S ** (n - 2)) ** (1.0 / (n - 1)))
     rms = float(np.sqrt(np.mean(e**2))) * sc
     flags += _quality_flags(n, res.success, fixed_n, rms, pixel_size, r.size)
-    return PowerLawFit(n=float(n), Q=Q, ln_Q=float(ln_Q), R=R, S=float(S), z0=float(z0s * sc),
-                       cov_n_lnQ=cov2, rms_residual=rms, fit_error_percent=100.0 * rms / h,
-                       fit_height=h, r=r, z=z, flags=flags,
-                       sigma_n=float(np.sqrt(cov2[0, 0])), sigma_lnQ=float(np.sqrt(cov2[1, 1])),
-                       flank=flank_out, edge_noise_fraction=edge_part,
-                       axis_offset=float(pf[3] * sc) if side is not None else 0.0,
-                       flank_asymmetry=float(pf[4]) if side is not None else 0.0)
+    return PowerLawFit(
+        n=float(n),
+        Q=Q,
+        ln_Q=float(ln_Q),
+        R=R,
+        S=float(S),
+        z0=float(z0s * sc),
+        cov_n_lnQ=cov2,
+        rms_residual=rms,
+        fit_error_percent=100.0 * rms / h,
+        fit_height=h,
+        r=r,
+        z=z,
+        flags=flags,
+        sigma_n=float(np.sqrt(cov2[0, 0])),
+        sigma_lnQ=float(np.sqrt(cov2[1, 1])),
+        flank=flank_out,
+        edge_noise_fraction=edge_part,
+        axis_offset=float(pf[3] * sc) if side is not None else 0.0,
+        flank_asymmetry=float(pf[4]) if side is not None else 0.0,
+    )
 
 
 def _window(r, z, fit_height, groups, flank, edge_basis, edge_cov, normal_rz):

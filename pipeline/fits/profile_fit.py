@@ -1,4 +1,5 @@
 """The public stage-2 fit: screening, the power-law fit and the flanks' disagreement (package doc)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,20 +24,38 @@ def _screened_out(robust, r, z, side, win, r_scale, pixel_size, notes, flags):
     ``robust`` fit; appends to ``notes`` and ``flags``."""
     bump = _one_flank_runs(robust, r, z, side, win, r_scale)
     if bump.any():
-        notes.append(f"contamination on the {_where(r, z, side, bump)} (stands out of that flank only, "
-                     f"{bump.sum()} points): left out, the fit rests on the unaffected points")
+        notes.append(
+            f"contamination on the {_where(r, z, side, bump)} (stands out of that flank only, "
+            f"{bump.sum()} points): left out, the fit rests on the unaffected points"
+        )
     back = _turned_back(r, z, side, win & ~bump, tol=max(TURN_BACK_TOL, TURN_BACK_PX * (pixel_size or 0.0)))
     if back.any():
-        notes.append(f"edge turns back (radius shrinking with height) at {back.sum()} of {win.sum()} points "
-                     f"({_where(r, z, side, back)}): left out")
+        notes.append(
+            f"edge turns back (radius shrinking with height) at {back.sum()} of {win.sum()} points "
+            f"({_where(r, z, side, back)}): left out"
+        )
         if back.sum() > TURN_BACK_MAX * max(win.sum(), 1):
             flags.append("edge_turns_back")
     return bump, back
 
 
-def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_scale=1e-9,
-                  edge_basis=None, edge_cov=None, normal_rz=None, fixed_n=None, flank=None, screen=True,
-                  image_chi2_red=None, image_n_pixels=None) -> PowerLawFit:
+def fit_power_law(
+    r,
+    z,
+    fit_height=6e-9,
+    S=1.0,
+    pixel_size=None,
+    groups=None,
+    r_scale=1e-9,
+    edge_basis=None,
+    edge_cov=None,
+    normal_rz=None,
+    fixed_n=None,
+    flank=None,
+    screen=True,
+    image_chi2_red=None,
+    image_n_pixels=None,
+) -> PowerLawFit:
     """``_fit_power_law`` (Eq. 1) on the profile points, screened first where both flanks are given
     (``screen``): points where the edge turns back (the radius shrinks with height) and runs
     that stand out of one flank only (contamination: the flanks' mirror symmetry broken) are
@@ -53,10 +72,14 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
         pre.append("the silhouette fit gave no finite edge covariance: sigma_n from the residual scatter")
 
     def sub(keep):
-        out = dict(groups=None if groups is None else np.asarray(groups)[keep],
-                   flank=None if flank is None else np.asarray(flank)[keep])
+        out = dict(
+            groups=None if groups is None else np.asarray(groups)[keep],
+            flank=None if flank is None else np.asarray(flank)[keep],
+        )
         if edge_basis is not None and edge_cov is not None and normal_rz is not None:
-            out.update(edge_basis=np.asarray(edge_basis)[keep], edge_cov=edge_cov, normal_rz=np.asarray(normal_rz)[keep])
+            out.update(
+                edge_basis=np.asarray(edge_basis)[keep], edge_cov=edge_cov, normal_rz=np.asarray(normal_rz)[keep]
+            )
         return out
 
     full = np.ones(r.size, bool)
@@ -75,8 +98,10 @@ def fit_power_law(r, z, fit_height=6e-9, S=1.0, pixel_size=None, groups=None, r_
     keep = full & ~bump & ~back
     fit = _fit_power_law(r[keep], z[keep], **args, **sub(keep), systematic_px=sys_px)
     if sys_px > 0:
-        notes.append(f"the image fit leaves more than noise (reduced chi^2 {image_chi2_red:.3g}): a smooth edge error of "
-                     f"{sys_px:.2f} px per flank is in the covariance")
+        notes.append(
+            f"the image fit leaves more than noise (reduced chi^2 {image_chi2_red:.3g}): a smooth edge error of "
+            f"{sys_px:.2f} px per flank is in the covariance"
+        )
     if fixed_n is None and FLANK_DISAGREEMENT:
         _add_flank_disagreement(fit, r, z, side, keep & win, args, notes)
     fit.notes = notes + fit.notes
@@ -107,7 +132,7 @@ def _add_flank_disagreement(fit, r, z, side, use, args, notes):
         if f1.flags:
             return
         ns.append(f1.n)
-        vs.append(f1.sigma_n ** 2)
+        vs.append(f1.sigma_n**2)
     d2 = 0.25 * (ns[0] - ns[1]) ** 2
     d2 = max(0.0, d2 - 0.25 * (vs[0] + vs[1]))  # only what the flanks' own noise does not explain
     n = fit.n
@@ -119,8 +144,10 @@ def _add_flank_disagreement(fit, r, z, side, use, args, notes):
     fit.sigma_lnQ = float(np.sqrt(fit.cov_n_lnQ[1, 1]))
     fit.flank_n = (float(ns[0]), float(ns[1]))
     if np.sqrt(d2) > before:
-        notes.append(f"the flanks disagree: n = {ns[0]:.2f} (left) and {ns[1]:.2f} (right) fitted separately; "
-                     f"sigma_n {before:.3f} -> {fit.sigma_n:.3f} with their half-difference")
+        notes.append(
+            f"the flanks disagree: n = {ns[0]:.2f} (left) and {ns[1]:.2f} (right) fitted separately; "
+            f"sigma_n {before:.3f} -> {fit.sigma_n:.3f} with their half-difference"
+        )
 
 
 def fit_tip_profile(profile, fit_height=6e-9, S=1.0, which="both") -> PowerLawFit:
@@ -133,6 +160,15 @@ def fit_tip_profile(profile, fit_height=6e-9, S=1.0, which="both") -> PowerLawFi
     both = which == "both"
     em = profile.edge_model or {}
     chi2, npx = em.get("global_chi2_red"), em.get("global_n_pixels")
-    return fit_power_law(np.abs(profile.x[i]), profile.z[i], fit_height, S, pixel_size=profile.pixel_size,
-                         groups=profile.flank[i] if both else None, flank=profile.flank[i] if both else None,
-                         image_chi2_red=chi2 if both else None, image_n_pixels=npx, **edge)
+    return fit_power_law(
+        np.abs(profile.x[i]),
+        profile.z[i],
+        fit_height,
+        S,
+        pixel_size=profile.pixel_size,
+        groups=profile.flank[i] if both else None,
+        flank=profile.flank[i] if both else None,
+        image_chi2_red=chi2 if both else None,
+        image_n_pixels=npx,
+        **edge,
+    )

@@ -1,4 +1,5 @@
 """The result of the stage-2 power-law fit and its error."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

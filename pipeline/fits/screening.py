@@ -1,5 +1,6 @@
 """Screening of the profile before the fit (package doc, "Screening"): points where the edge turns
 back and runs that stand out of one flank only."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,8 +48,12 @@ def _turned_back(r, z, side, win, tol=TURN_BACK_TOL):
 def _one_flank_runs(fit, r, z, side, use, r_scale):
     """Runs of points of one flank that stand outwards of the flank-wise fit (module doc) while
     the other flank at the same heights does not: contamination stuck to one flank."""
-    f, fp = _model(np.r_[fit.n, np.log(_r_h(fit) / r_scale), fit.z0 / r_scale, fit.axis_offset / r_scale,
-                         fit.flank_asymmetry], r / r_scale, fit.fit_height / r_scale, side)
+    f, fp = _model(
+        np.r_[fit.n, np.log(_r_h(fit) / r_scale), fit.z0 / r_scale, fit.axis_offset / r_scale, fit.flank_asymmetry],
+        r / r_scale,
+        fit.fit_height / r_scale,
+        side,
+    )
     e = (z / r_scale - f) / np.sqrt(1.0 + fp**2) * r_scale  # m, < 0 outwards
     if use.sum() < 10:
         return np.zeros(r.size, bool)

@@ -1,4 +1,5 @@
 """Stage 2's entry point (``python -m pipeline fit``): read the profile file, fit, write the fit file."""
+
 from __future__ import annotations
 
 from pipeline.fits.io import read_profile, write_fit_h5
@@ -15,19 +16,37 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
         r, z, edge = prof[name]
         try:
             both = name == "combined"
-            fits[name] = fit_power_law(r, z, fit_height, S, pixel_size=px, groups=prof["flank"] if both else None,
-                                       flank=prof["flank"] if both else None,
-                                       image_chi2_red=prof["chi2_red"] if both else None,
-                                       image_n_pixels=prof["n_pixels"], **(edge or {}))
+            fits[name] = fit_power_law(
+                r,
+                z,
+                fit_height,
+                S,
+                pixel_size=px,
+                groups=prof["flank"] if both else None,
+                flank=prof["flank"] if both else None,
+                image_chi2_red=prof["chi2_red"] if both else None,
+                image_n_pixels=prof["n_pixels"],
+                **(edge or {}),
+            )
         except FitError as exc:
             if name == "combined":
                 raise FitError(f"{profile_h5}: {exc}") from None
             fits[name] = None
     r, z, edge = prof["combined"]
     try:
-        para = fit_power_law(r, z, fit_height, S, pixel_size=px, groups=prof["flank"], flank=prof["flank"],
-                             fixed_n=2.0, image_chi2_red=prof["chi2_red"], image_n_pixels=prof["n_pixels"],
-                             **(edge or {}))
+        para = fit_power_law(
+            r,
+            z,
+            fit_height,
+            S,
+            pixel_size=px,
+            groups=prof["flank"],
+            flank=prof["flank"],
+            fixed_n=2.0,
+            image_chi2_red=prof["chi2_red"],
+            image_n_pixels=prof["n_pixels"],
+            **(edge or {}),
+        )
     except FitError:
         para = None
     write_fit_h5(out_h5, fits, para, source=profile_h5, tip=tip, interval=interval)

@@ -12,6 +12,7 @@ Conventions (SI inside): ``z`` is the piezo extension towards the sample (m,
 increases on approach); deflection is positive when the lever bends away from
 the sample (repulsive), in volts (``"V"``) or metres (``"m"``).
 """
+
 from pipeline.forces.errors import ForceCurveError, ForcesStageError
 
 __all__ = ["ForceCurveError", "ForcesStageError"]

@@ -1,4 +1,5 @@
 """Straight-line fits (baseline offset + tilt, contact slopes)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

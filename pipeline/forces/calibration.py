@@ -15,6 +15,7 @@ volts into F_p) are propagated to first order with numerical derivatives, keepin
 correlations (InvOLS_hard enters both k of the reference-lever method and InvOLS;
 the thermal k scales as 1/InvOLS^2).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -81,14 +82,19 @@ def _file_value(curves, attr, label):
     if vals.size == 0:
         return None
     if np.ptp(vals) > 1e-6 * abs(vals.mean()):
-        raise CalibrationError(f"the curve files store different {label} values ({vals.min():.6g} .. {vals.max():.6g}); give " f"cantilever.{'spring_constant' if attr == 'spring_constant' else 'deflection_sensitivity'} in the tip YAML")
+        raise CalibrationError(
+            f"the curve files store different {label} values ({vals.min():.6g} .. {vals.max():.6g}); give "
+            f"cantilever.{'spring_constant' if attr == 'spring_constant' else 'deflection_sensitivity'} in the tip YAML"
+        )
     return float(vals[0])
 
 
 def _hard_sample_invols(cant, reader, details, key="hard_sample_curves", group="hard_sample"):
     files = resolve_paths(cant, cant[key])
     if not files:
-        raise CalibrationError(f"cantilever.{key}: no files match {cant[key]!r} (base_dir {cant.get('base_dir', '.')!r})")
+        raise CalibrationError(
+            f"cantilever.{key}: no files match {cant[key]!r} (base_dir {cant.get('base_dir', '.')!r})"
+        )
     from pipeline.forces.reading import read_curves
 
     curves, rejected = [], []
@@ -100,7 +106,9 @@ def _hard_sample_invols(cant, reader, details, key="hard_sample_curves", group="
     try:
         if not curves:
             raise ForceCurveError(files[0], "no readable hard-sample curve")
-        mean, u, vals, us, bad = invols_from_curves(curves, fit_range=tuple(cant["contact_fit_range"]), segment=cant["contact_segment"])
+        mean, u, vals, us, bad = invols_from_curves(
+            curves, fit_range=tuple(cant["contact_fit_range"]), segment=cant["contact_segment"]
+        )
     except ForceCurveError as exc:
         why = "; ".join(f"{p}: {r}" for p, r in rejected[:3])
         raise CalibrationError(f"cantilever.{key}: {exc}" + (f"; unreadable: {why}" if why else "")) from None
@@ -113,8 +121,11 @@ def _hard_sample_invols(cant, reader, details, key="hard_sample_curves", group="
         "contact_fit_range": (np.asarray(cant["contact_fit_range"], float), "1", "fraction of max deflection fitted"),
     }
     n = vals.size
-    src = (f"contact slope of {n} curve(s) in {cant[key]} ({cant['contact_segment']}), u = SEM" if n > 1
-           else f"contact slope of 1 curve in {cant[key]}, u = fit error")
+    src = (
+        f"contact slope of {n} curve(s) in {cant[key]} ({cant['contact_segment']}), u = SEM"
+        if n > 1
+        else f"contact slope of 1 curve in {cant[key]}, u = fit error"
+    )
     if rejected:
         src += f"; {len(rejected)} curve(s) left out: " + "; ".join(f"{Path(p).name}: {r}" for p, r in rejected[:3])
     return mean, u, src
@@ -142,7 +153,9 @@ def calibrate(cantilever: dict | None, curves: list[ForceCurve], reader: dict | 
     corr = cov[0, 1] / (uk * ui) if uk > 0 and ui > 0 else 0.0
     if not (k > 0 and inv > 0):
         raise CalibrationError(f"non-positive calibration: k = {k:g} N/m, InvOLS = {inv:g} m/V")
-    return Calibration(float(k), float(uk), float(inv), float(ui), km, im, k_src, i_src, float(fac), float(uf), float(corr), details)
+    return Calibration(
+        float(k), float(uk), float(inv), float(ui), km, im, k_src, i_src, float(fac), float(uf), float(corr), details
+    )
 
 
 def _tip_invols(cant, reader, curves, details, x, u):
@@ -183,7 +196,10 @@ def _invols_from_files(cant, curves, per_interval, x, u) -> str:
     if per_interval:
         x["invols"], u["invols"] = np.nan, 0.0
         return "none at tip level (InvOLS per interval)"
-    raise CalibrationError("no deflection sensitivity (InvOLS): the curve files carry none; give " "cantilever.deflection_sensitivity or cantilever.hard_sample_curves")
+    raise CalibrationError(
+        "no deflection sensitivity (InvOLS): the curve files carry none; give "
+        "cantilever.deflection_sensitivity or cantilever.hard_sample_curves"
+    )
 
 
 def _spring_constant(cant, reader, curves, details, x, u):
@@ -191,8 +207,15 @@ def _spring_constant(cant, reader, curves, details, x, u):
     source in words)."""
     km = cant["spring_constant_method"]
     if km == "auto":
-        km = ("given" if "spring_constant" in cant else "reference_lever" if "reference_lever" in cant
-              else "thermal" if "thermal" in cant else "file")
+        km = (
+            "given"
+            if "spring_constant" in cant
+            else "reference_lever"
+            if "reference_lever" in cant
+            else "thermal"
+            if "thermal" in cant
+            else "file"
+        )
     if km == "given":
         if "spring_constant" not in cant:
             raise CalibrationError("spring_constant_method 'given' needs cantilever.spring_constant")
@@ -202,7 +225,10 @@ def _spring_constant(cant, reader, curves, details, x, u):
     elif km == "file":
         v = _file_value(curves, "spring_constant", "spring constant")
         if v is None:
-            raise CalibrationError("no spring constant: the curve files carry none; give " "cantilever.spring_constant, reference_lever or thermal")
+            raise CalibrationError(
+                "no spring constant: the curve files carry none; give "
+                "cantilever.spring_constant, reference_lever or thermal"
+            )
         x["k"], u["k"] = v, cant.get("spring_constant_uncertainty", 0.0)
         k_fun = lambda p: p["k"]  # noqa: E731
         k_src = "force-curve file metadata" + ("" if u["k"] else " (uncertainty unknown: 0)")
@@ -221,13 +247,20 @@ def _reference_invols(ref, cant, reader, x, u, details):
     """The InvOLS of the test lever pressed on the reference lever (given or from its curves)
     into ``x``/``u``; returns where it came from."""
     if "deflection_sensitivity" in ref:
-        x["invols_ref"], u["invols_ref"] = ref["deflection_sensitivity"], ref.get("deflection_sensitivity_uncertainty", 0.0)
+        x["invols_ref"], u["invols_ref"] = (
+            ref["deflection_sensitivity"],
+            ref.get("deflection_sensitivity_uncertainty", 0.0),
+        )
         r_src = "InvOLS on the reference lever from tip YAML"
     elif "curves" in ref:
-        x["invols_ref"], u["invols_ref"], r_src = _hard_sample_invols({**cant, "ref_curves": ref["curves"]}, reader, details, "ref_curves", "reference_curves")
+        x["invols_ref"], u["invols_ref"], r_src = _hard_sample_invols(
+            {**cant, "ref_curves": ref["curves"]}, reader, details, "ref_curves", "reference_curves"
+        )
         r_src = "InvOLS on the reference lever: " + r_src
     else:
-        raise CalibrationError("cantilever.reference_lever needs deflection_sensitivity or curves (InvOLS measured on the reference lever)")
+        raise CalibrationError(
+            "cantilever.reference_lever needs deflection_sensitivity or curves (InvOLS measured on the reference lever)"
+        )
     return r_src
 
 
@@ -249,8 +282,10 @@ def _reference_setup(cant, reader, x, u, details):
     if "reference_lever" not in cant:
         raise CalibrationError("spring_constant_method 'reference_lever' needs cantilever.reference_lever")
     if not np.isfinite(x["invols"]):
-        raise CalibrationError("the reference-lever spring constant needs the InvOLS of the calibration session (the "
-                               "test lever on a hard sample): give cantilever.hard_sample_curves or deflection_sensitivity")
+        raise CalibrationError(
+            "the reference-lever spring constant needs the InvOLS of the calibration session (the "
+            "test lever on a hard sample): give cantilever.hard_sample_curves or deflection_sensitivity"
+        )
     ref = with_defaults(cant["reference_lever"], REFERENCE_DEFAULTS)
     ref.setdefault("base_dir", cant.get("base_dir", "."))
     if "spring_constant" not in ref:
@@ -267,14 +302,25 @@ def _reference_setup(cant, reader, x, u, details):
     tc = ref["tilt_correction"]
 
     def k_fun(p):
-        return reference_lever_k(p["k_ref"], p["invols"], p["invols_ref"], length=p.get("L"), offset=p["dL"], tilt=p["theta"], tilt_correction=tc)
+        return reference_lever_k(
+            p["k_ref"],
+            p["invols"],
+            p["invols_ref"],
+            length=p.get("L"),
+            offset=p["dL"],
+            tilt=p["theta"],
+            tilt_correction=tc,
+        )
 
     try:
         k_fun(x)
     except ValueError as exc:
         raise CalibrationError(f"reference lever: {exc}") from None
     details["reference_lever"] = _reference_details(x, u, length, tc)
-    src = ("reference lever (Tortonese & Kirk 1997): k = k_ref (L/(L-dL))^3 " f"(InvOLS_ref/InvOLS_hard - 1) cos^p(tilt), tilt_correction={tc}; {r_src}")
+    src = (
+        "reference lever (Tortonese & Kirk 1997): k = k_ref (L/(L-dL))^3 "
+        f"(InvOLS_ref/InvOLS_hard - 1) cos^p(tilt), tilt_correction={tc}; {r_src}"
+    )
     return k_fun, src
 
 
@@ -312,5 +358,8 @@ def _thermal_setup(cant, x, u, details):
         "temperature": (x["T"], "K", "temperature"),
         "shape_factor": (SHAPE_FACTOR[th["lever_shape"]], "1", f"{th['lever_shape']} lever correction"),
     }
-    src = (f"thermal noise ({th['lever_shape']}, C = {SHAPE_FACTOR[th['lever_shape']]}): k = " f"C k_B T/<z^2>, SHO fit f0 = {fit.f0:.5g} Hz, Q = {fit.Q:.3g}, file {files[0].name}")
+    src = (
+        f"thermal noise ({th['lever_shape']}, C = {SHAPE_FACTOR[th['lever_shape']]}): k = "
+        f"C k_B T/<z^2>, SHO fit f0 = {fit.f0:.5g} Hz, Q = {fit.Q:.3g}, file {files[0].name}"
+    )
     return k_fun, src

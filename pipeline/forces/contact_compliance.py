@@ -16,6 +16,7 @@ c - 1 is about k / (2 E* a): 0.1-0.3 % for a 0.1-0.5 N/m lever, ~1 % at 2 N/m, s
 and E*, divides F_p of an interval whose InvOLS came from its own contact slopes by c and adds
 half of c - 1 (DMT vs JKR, the shape of the very apex) to the interval's calibration uncertainty.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -36,8 +37,18 @@ def contact_compliance_factor(k, d_range, F_adh, n, Q, E_star) -> float:
     """c = 1 + [delta(F_adh + k d_hi) - delta(F_adh + k d_lo)] / (d_hi - d_lo) (module doc);
     1 where the range or the shape is unknown.  k (N/m), d_range (m), F_adh (N), Q (m^(n-1)), E* (Pa)."""
     d_lo, d_hi = (float(x) for x in d_range)
-    if not (np.isfinite(d_lo) and np.isfinite(d_hi) and d_hi > d_lo and np.isfinite(n) and n > 0
-            and np.isfinite(Q) and Q > 0 and np.isfinite(E_star) and E_star > 0 and k > 0):
+    if not (
+        np.isfinite(d_lo)
+        and np.isfinite(d_hi)
+        and d_hi > d_lo
+        and np.isfinite(n)
+        and n > 0
+        and np.isfinite(Q)
+        and Q > 0
+        and np.isfinite(E_star)
+        and E_star > 0
+        and k > 0
+    ):
         return 1.0
     F_adh = max(float(F_adh), 0.0) if np.isfinite(F_adh) else 0.0
     dd = sneddon_indentation(F_adh + k * d_hi, n, Q, E_star) - sneddon_indentation(F_adh + k * d_lo, n, Q, E_star)

@@ -1,4 +1,5 @@
 """Deflection sensitivity (InvOLS, m/V) from the contact slope of curves on a hard sample."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -48,14 +49,19 @@ def contact_slope(z, d, *, fit_range=(0.2, 0.8), path="") -> ContactSlope:
     dco = dc[order]
     dmax = float(dc.max())
     if not dmax > 10 * base.rms:
-        raise ForceCurveError(path, f"no repulsive contact part: maximum deflection {dmax:.3g} V is below 10 x noise {base.rms:.3g} V")
+        raise ForceCurveError(
+            path, f"no repulsive contact part: maximum deflection {dmax:.3g} V is below 10 x noise {base.rms:.3g} V"
+        )
     lo, hi = fit_range[0] * dmax, fit_range[1] * dmax
     below = np.flatnonzero(dco < lo)
     run = order[: int(below[0]) if below.size else dco.size]
     sel = run[(dc[run] >= lo) & (dc[run] <= hi)]
     if sel.size < MIN_CONTACT_POINTS:
-        raise ForceCurveError(path, f"contact part too short for a slope: {sel.size} points in the fit range "
-                                    f"{list(fit_range)} (need {MIN_CONTACT_POINTS})")
+        raise ForceCurveError(
+            path,
+            f"contact part too short for a slope: {sel.size} points in the fit range "
+            f"{list(fit_range)} (need {MIN_CONTACT_POINTS})",
+        )
     line = fit_line(z[sel], dc[sel])
     if not line.slope > 0:
         raise ForceCurveError(path, "contact slope is not positive (deflection does not rise in contact)")
@@ -65,8 +71,11 @@ def contact_slope(z, d, *, fit_range=(0.2, 0.8), path="") -> ContactSlope:
         a, b = (fit_line(z[h], dc[h]) for h in halves)
         diff = abs(b.slope - a.slope)
         if diff > MAX_NONLINEARITY * line.slope and diff > NONLINEARITY_SIGMA * np.hypot(a.u_slope, b.u_slope):
-            raise ForceCurveError(path, f"contact part not linear: slope {a.slope * 1e-9:.4g} V/nm in its lower half, "
-                                        f"{b.slope * 1e-9:.4g} V/nm in its upper half (soft sample or drift): no InvOLS")
+            raise ForceCurveError(
+                path,
+                f"contact part not linear: slope {a.slope * 1e-9:.4g} V/nm in its lower half, "
+                f"{b.slope * 1e-9:.4g} V/nm in its upper half (soft sample or drift): no InvOLS",
+            )
     return ContactSlope(1.0 / line.slope, line.u_slope / line.slope**2, line.slope, line.n, float(lo), float(hi))
 
 
@@ -97,8 +106,13 @@ def invols_from_curves(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), segmen
     if vals.size >= 3:
         out = generalized_esd(vals, alpha=0.01)
         for p, v in zip(np.array(paths)[out], vals[out]):
-            rejected.append((str(p), f"its InvOLS {v * 1e9:.4g} nm/V is an outlier among the {vals.size} curves "
-                                     f"(median {np.median(vals) * 1e9:.4g} nm/V)"))
+            rejected.append(
+                (
+                    str(p),
+                    f"its InvOLS {v * 1e9:.4g} nm/V is an outlier among the {vals.size} curves "
+                    f"(median {np.median(vals) * 1e9:.4g} nm/V)",
+                )
+            )
         vals, us = vals[~out], us[~out]
     mean = float(vals.mean())
     u = float(vals.std(ddof=1) / np.sqrt(vals.size)) if vals.size > 1 else float(us[0])

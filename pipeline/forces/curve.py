@@ -1,4 +1,5 @@
 """The :class:`ForceCurve` container and splitting a ramp into approach/retract."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -34,7 +35,9 @@ class ForceCurve:
         if self.defl_units == "V":
             return d
         if self.invols is None:
-            raise ForceCurveError(self.path, "deflection is stored in metres and the file gives no InvOLS to convert it to volts")
+            raise ForceCurveError(
+                self.path, "deflection is stored in metres and the file gives no InvOLS to convert it to volts"
+            )
         return d / self.invols
 
 
@@ -47,7 +50,9 @@ def split_at_turnaround(path, z: np.ndarray, defl: np.ndarray):
         raise ForceCurveError(path, f"only {z.size} data points")
     i = int(np.argmax(z))
     if i == z.size - 1:
-        raise ForceCurveError(path, "no retract segment: the piezo never reverses direction (extension is maximal at the last point)")
+        raise ForceCurveError(
+            path, "no retract segment: the piezo never reverses direction (extension is maximal at the last point)"
+        )
     if i == 0:
         raise ForceCurveError(path, "no approach segment: the piezo only retracts")
     return z[: i + 1], defl[: i + 1], z[i:], defl[i:]
@@ -55,14 +60,23 @@ def split_at_turnaround(path, z: np.ndarray, defl: np.ndarray):
 
 def check_segments(curve: ForceCurve, min_points: int = 10) -> ForceCurve:
     """Check both segments are present, finite and move the piezo the right way."""
-    for name, z, d in (("approach", curve.z_approach, curve.defl_approach), ("retract", curve.z_retract, curve.defl_retract)):
+    for name, z, d in (
+        ("approach", curve.z_approach, curve.defl_approach),
+        ("retract", curve.z_retract, curve.defl_retract),
+    ):
         if z.size < min_points:
             raise ForceCurveError(curve.path, f"no {name} segment (only {z.size} points)")
         n_bad = int(np.count_nonzero(~np.isfinite(z)) + np.count_nonzero(~np.isfinite(d)))
         if n_bad:
             raise ForceCurveError(curve.path, f"{n_bad} NaN/inf values in the {name} segment")
     if curve.z_approach[-1] <= curve.z_approach[0]:
-        raise ForceCurveError(curve.path, "the piezo moves away from the sample during the 'approach' segment (check force_curves.height_axis)")
+        raise ForceCurveError(
+            curve.path,
+            "the piezo moves away from the sample during the 'approach' segment (check force_curves.height_axis)",
+        )
     if curve.z_retract[-1] >= curve.z_retract[0]:
-        raise ForceCurveError(curve.path, "the piezo moves towards the sample during the 'retract' segment (check force_curves.height_axis)")
+        raise ForceCurveError(
+            curve.path,
+            "the piezo moves towards the sample during the 'retract' segment (check force_curves.height_axis)",
+        )
     return curve

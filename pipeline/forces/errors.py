@@ -1,4 +1,5 @@
 """Errors of the forces stage; every message names the file it is about."""
+
 from __future__ import annotations
 
 from pipeline.errors import FileError

@@ -1,4 +1,5 @@
 """Figure of an interval's retract curves with baselines and detected pull-offs."""
+
 from __future__ import annotations
 
 import matplotlib
@@ -20,13 +21,27 @@ def plot_retracts(out_png, items, *, title="", n_total=None):
     for a in (ax, az):
         for j, it in enumerate(items):
             color = f"C{j % 10}" if it["accepted"] else "0.6"
-            a.plot(it["x"] * 1e9, it["force"] * 1e9, lw=0.7, color=color, alpha=0.8 if it["accepted"] else 0.5,
-                   marker="." if a is az else None, ms=2)
+            a.plot(
+                it["x"] * 1e9,
+                it["force"] * 1e9,
+                lw=0.7,
+                color=color,
+                alpha=0.8 if it["accepted"] else 0.5,
+                marker="." if a is az else None,
+                ms=2,
+            )
             if it.get("baseline") is not None:
                 a.plot(it["x"] * 1e9, it["baseline"] * 1e9, ls="--", lw=0.8, color=color)
             if it["accepted"]:
-                a.plot([it["x_po"] * 1e9], [it["F_po"] * 1e9], marker="x" if it["outlier"] else "o", ms=7, mfc="none",
-                       color=color, mew=1.5)
+                a.plot(
+                    [it["x_po"] * 1e9],
+                    [it["F_po"] * 1e9],
+                    marker="x" if it["outlier"] else "o",
+                    ms=7,
+                    mfc="none",
+                    color=color,
+                    mew=1.5,
+                )
         a.axhline(0, color="k", lw=0.4)
         a.set_xlabel("piezo distance from pull-off (nm, away from sample)")
     ax.set_ylabel("force (nN)")
@@ -43,8 +58,10 @@ def plot_retracts(out_png, items, *, title="", n_total=None):
         az.set_ylim(-1.3 * depth, 0.6 * depth)
     az.set_title("adhesive part", fontsize=8)
     n_ok = sum(it["accepted"] for it in items)
-    fig.suptitle(f"{title}  ({n_ok}/{n_total or len(items)} curves accepted; o pull-off, x outlier, grey rejected, "
-                 "-- baseline)", fontsize=8)
+    fig.suptitle(
+        f"{title}  ({n_ok}/{n_total or len(items)} curves accepted; o pull-off, x outlier, grey rejected, -- baseline)",
+        fontsize=8,
+    )
     fig.tight_layout()
     with atomic_output(out_png) as tmp:
         fig.savefig(tmp, format="png")

@@ -30,6 +30,7 @@ linear cannot give InvOLS; the reason is recorded, and if no curve of the interv
 interval falls back to the tip-level value (``contact_fallback: tip``) or fails naming the
 interval and the setting (``fail``, the default).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -54,7 +55,9 @@ class ContactInvols:
     u_fit: np.ndarray  # m/V, fit standard error per curve
     reason: list  # '' where the curve gave a value
     floor: float  # relative systematic uncertainty
-    fit_range_V: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # per curve: deflection (V) at the ends of the fit
+    fit_range_V: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 2))
+    )  # per curve: deflection (V) at the ends of the fit
 
     @property
     def fit_range_m(self) -> np.ndarray:
@@ -102,8 +105,9 @@ class IntervalInvols:
     warnings: list = field(default_factory=list)
 
 
-def measure_contact_invols(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), segment="approach",
-                           floor=0.005) -> ContactInvols:
+def measure_contact_invols(
+    curves: list[ForceCurve], *, fit_range=(0.2, 0.8), segment="approach", floor=0.005
+) -> ContactInvols:
     """Contact-slope InvOLS of every curve: in volts as recorded, or converted back to volts with
     the file's own InvOLS (instrument files in metres: a stale file InvOLS is then caught);
     curves in metres without one are skipped with the reason."""
@@ -112,7 +116,11 @@ def measure_contact_invols(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), se
         files.append(c.path)
         ranges.append((np.nan, np.nan))
         if c.defl_units != "V" and c.invols is None:
-            vals.append(np.nan), us.append(np.nan), reasons.append("deflection recorded in metres with no InvOLS in the file")
+            (
+                vals.append(np.nan),
+                us.append(np.nan),
+                reasons.append("deflection recorded in metres with no InvOLS in the file"),
+            )
             continue
         z = c.z_approach if segment == "approach" else c.z_retract
         try:
@@ -121,8 +129,9 @@ def measure_contact_invols(curves: list[ForceCurve], *, fit_range=(0.2, 0.8), se
             ranges[-1] = (cs.fit_lo, cs.fit_hi)
         except ForceCurveError as exc:
             vals.append(np.nan), us.append(np.nan), reasons.append(exc.reason)
-    return ContactInvols(files, np.array(vals, float), np.array(us, float), reasons, float(floor),
-                         np.array(ranges, float).reshape(-1, 2))
+    return ContactInvols(
+        files, np.array(vals, float), np.array(us, float), reasons, float(floor), np.array(ranges, float).reshape(-1, 2)
+    )
 
 
 def _method(cant: dict, interval: dict, file_invols) -> str:
@@ -142,8 +151,10 @@ def _file_invols(curves: list[ForceCurve], label: str):
     if vals.size == 0:
         return None
     if np.ptp(vals) > 1e-6 * abs(vals.mean()):
-        raise CalibrationError(f"{label}: the curve files store different InvOLS values ({vals.min():.6g} .. {vals.max():.6g} m/V); "
-                               "give intervals[].deflection_sensitivity for this interval")
+        raise CalibrationError(
+            f"{label}: the curve files store different InvOLS values ({vals.min():.6g} .. {vals.max():.6g} m/V); "
+            "give intervals[].deflection_sensitivity for this interval"
+        )
     return float(vals[0])
 
 
@@ -153,8 +164,9 @@ def _contact_reasons(ci: ContactInvols, most=3) -> str:
     return txt + (f"; and {len(bad) - most} more" if len(bad) > most else "")
 
 
-def resolve_interval_invols(cant: dict, interval: dict, curves: list[ForceCurve], tip_cal, *, reader: dict,
-                            label: str) -> IntervalInvols:
+def resolve_interval_invols(
+    cant: dict, interval: dict, curves: list[ForceCurve], tip_cal, *, reader: dict, label: str
+) -> IntervalInvols:
     """The InvOLS to use for one interval (module doc); ``tip_cal`` is the tip-level
     :class:`~pipeline.forces.calibration.Calibration` (its ``invols`` NaN where none is configured)."""
     interval = interval or {}
@@ -173,7 +185,9 @@ def resolve_interval_invols(cant: dict, interval: dict, curves: list[ForceCurve]
         res = _from_interval_given(interval, contact, label)
     elif method == "interval_curves":
         if "calibration_curves" not in interval:
-            raise CalibrationError(f"{label}: deflection_sensitivity_method 'interval_curves' needs intervals[].calibration_curves")
+            raise CalibrationError(
+                f"{label}: deflection_sensitivity_method 'interval_curves' needs intervals[].calibration_curves"
+            )
         res = _from_calibration_curves(cant, interval, reader, fit_range, seg, floor, contact, label)
     elif method == "contact":
         res = _from_contact(contact, len(curves), tip_cal, cant, in_volts, label)
@@ -187,43 +201,67 @@ def _tip_value(tip_cal, in_volts: bool, contact, label: str) -> IntervalInvols:
     """The tip-level InvOLS (shared by the intervals); none needed for curves in metres."""
     if not np.isfinite(tip_cal.invols):
         if not in_volts:
-            return IntervalInvols(np.nan, np.nan, "none", "not used: deflection recorded in metres by the instrument", True, contact)
+            return IntervalInvols(
+                np.nan, np.nan, "none", "not used: deflection recorded in metres by the instrument", True, contact
+            )
         raise CalibrationError(
             f"{label}: no deflection sensitivity (InvOLS); give cantilever.deflection_sensitivity or "
-            "hard_sample_curves (one value for the tip), or intervals[].deflection_sensitivity / calibration_curves")
+            "hard_sample_curves (one value for the tip), or intervals[].deflection_sensitivity / calibration_curves"
+        )
     return IntervalInvols(tip_cal.invols, tip_cal.u_invols, tip_cal.invols_method, tip_cal.invols_source, True, contact)
 
 
 def _from_interval_file(file_invols, cant, contact, label: str) -> IntervalInvols:
     if file_invols is None:
-        raise CalibrationError(f"{label}: deflection_sensitivity_method 'interval_file' but the interval's curve files "
-                               "store no InvOLS")
+        raise CalibrationError(
+            f"{label}: deflection_sensitivity_method 'interval_file' but the interval's curve files store no InvOLS"
+        )
     u = float(cant.get("deflection_sensitivity_uncertainty", 0.0))
-    return IntervalInvols(file_invols, u, "interval_file",
-                          "InvOLS stored in the interval's force-curve files (the instrument's calibration at this "
-                          "mounting)" + ("" if u else "; uncertainty unknown: 0"), False, contact)
+    return IntervalInvols(
+        file_invols,
+        u,
+        "interval_file",
+        "InvOLS stored in the interval's force-curve files (the instrument's calibration at this "
+        "mounting)" + ("" if u else "; uncertainty unknown: 0"),
+        False,
+        contact,
+    )
 
 
 def _from_interval_given(interval, contact, label: str) -> IntervalInvols:
     if "deflection_sensitivity" not in interval:
-        raise CalibrationError(f"{label}: deflection_sensitivity_method 'interval_given' needs intervals[].deflection_sensitivity")
+        raise CalibrationError(
+            f"{label}: deflection_sensitivity_method 'interval_given' needs intervals[].deflection_sensitivity"
+        )
     u = float(interval.get("deflection_sensitivity_uncertainty", 0.0))
     if not (float(interval["deflection_sensitivity"]) > 0 and u >= 0):
-        raise CalibrationError(f"{label}: intervals[].deflection_sensitivity must be positive and its uncertainty "
-                               f">= 0 (got {interval['deflection_sensitivity']:g} +- {u:g} m/V)")
-    return IntervalInvols(float(interval["deflection_sensitivity"]), u, "interval_given",
-                          "intervals[].deflection_sensitivity of the tip YAML" + ("" if u else " (no uncertainty given: 0)"),
-                          False, contact)
+        raise CalibrationError(
+            f"{label}: intervals[].deflection_sensitivity must be positive and its uncertainty "
+            f">= 0 (got {interval['deflection_sensitivity']:g} +- {u:g} m/V)"
+        )
+    return IntervalInvols(
+        float(interval["deflection_sensitivity"]),
+        u,
+        "interval_given",
+        "intervals[].deflection_sensitivity of the tip YAML" + ("" if u else " (no uncertainty given: 0)"),
+        False,
+        contact,
+    )
 
 
 def _from_contact(contact, n_curves: int, tip_cal, cant, in_volts: bool, label: str) -> IntervalInvols:
     """The interval's own contact slopes; without any, the tip's InvOLS where allowed."""
     if contact.n:
-        src = (f"contact slope ({cant['contact_segment']}) of {contact.n} of the interval's {n_curves} curves on the "
-               f"counter-surface, u = SEM with a {100 * contact.floor:g} % floor")
+        src = (
+            f"contact slope ({cant['contact_segment']}) of {contact.n} of the interval's {n_curves} curves on the "
+            f"counter-surface, u = SEM with a {100 * contact.floor:g} % floor"
+        )
         if np.isfinite(tip_cal.invols):
-            src += (f"; the tip-level InvOLS of the calibration session ({tip_cal.invols * 1e9:.4g} nm/V) differs by "
-                    f"{100 * (tip_cal.invols / contact.mean - 1):+.1f} % " "(not used: the chip is remounted for every interval)")
+            src += (
+                f"; the tip-level InvOLS of the calibration session ({tip_cal.invols * 1e9:.4g} nm/V) differs by "
+                f"{100 * (tip_cal.invols / contact.mean - 1):+.1f} % "
+                "(not used: the chip is remounted for every interval)"
+            )
         res = IntervalInvols(contact.mean, contact.u, "contact", src, False, contact)
         if contact.n < n_curves:
             res.warnings.append(f"{n_curves - contact.n} curve(s) gave no contact slope ({_contact_reasons(contact)})")
@@ -232,13 +270,16 @@ def _from_contact(contact, n_curves: int, tip_cal, cant, in_volts: bool, label: 
         return _tip_value(tip_cal, in_volts, contact, label)
     if np.isfinite(tip_cal.invols) and cant["contact_fallback"] == "tip":
         res = _tip_value(tip_cal, in_volts, contact, label)
-        res.warnings.append(f"no curve of the interval gives a contact slope ({_contact_reasons(contact)}); "
-                            f"the tip-level InvOLS {tip_cal.invols * 1e9:.4g} nm/V is used (cantilever.contact_fallback: tip)")
+        res.warnings.append(
+            f"no curve of the interval gives a contact slope ({_contact_reasons(contact)}); "
+            f"the tip-level InvOLS {tip_cal.invols * 1e9:.4g} nm/V is used (cantilever.contact_fallback: tip)"
+        )
         return res
     raise CalibrationError(
         f"{label}: no curve gives an InvOLS from its contact part ({_contact_reasons(contact)}); give "
         "intervals[].deflection_sensitivity or calibration_curves for this interval, or set "
-        "cantilever.contact_fallback: tip to use the tip-level InvOLS")
+        "cantilever.contact_fallback: tip to use the tip-level InvOLS"
+    )
 
 
 def _from_calibration_curves(cant, interval, reader, fit_range, seg, floor, contact, label) -> IntervalInvols:
@@ -246,7 +287,9 @@ def _from_calibration_curves(cant, interval, reader, fit_range, seg, floor, cont
 
     files = resolve_paths(cant, interval["calibration_curves"])
     if not files:
-        raise CalibrationError(f"{label}: intervals[].calibration_curves: no files match {interval['calibration_curves']!r}")
+        raise CalibrationError(
+            f"{label}: intervals[].calibration_curves: no files match {interval['calibration_curves']!r}"
+        )
     curves = []
     try:
         for p in files:
@@ -255,12 +298,22 @@ def _from_calibration_curves(cant, interval, reader, fit_range, seg, floor, cont
         raise CalibrationError(f"{label}: intervals[].calibration_curves: {exc}") from None
     cal = measure_contact_invols(curves, fit_range=fit_range, segment=seg, floor=floor)
     if not cal.n:
-        raise CalibrationError(f"{label}: intervals[].calibration_curves give no contact slope ({_contact_reasons(cal)})")
-    res = IntervalInvols(cal.mean, cal.u, "interval_curves",
-                         f"contact slope of {cal.n} calibration curve(s) in {interval['calibration_curves']}, u = SEM "
-                         f"with a {100 * floor:g} % floor", False, contact)
+        raise CalibrationError(
+            f"{label}: intervals[].calibration_curves give no contact slope ({_contact_reasons(cal)})"
+        )
+    res = IntervalInvols(
+        cal.mean,
+        cal.u,
+        "interval_curves",
+        f"contact slope of {cal.n} calibration curve(s) in {interval['calibration_curves']}, u = SEM "
+        f"with a {100 * floor:g} % floor",
+        False,
+        contact,
+    )
     if cal.n < len(curves):
-        res.warnings.append(f"{len(curves) - cal.n} calibration curve(s) gave no contact slope ({_contact_reasons(cal)})")
+        res.warnings.append(
+            f"{len(curves) - cal.n} calibration curve(s) gave no contact slope ({_contact_reasons(cal)})"
+        )
     return res
 
 
@@ -273,7 +326,9 @@ def _check(res: IntervalInvols, n_sigma: float) -> None:
     comb = float(np.hypot(np.nan_to_num(res.u), ci.u))
     res.check_z = diff / comb if comb > 0 else np.inf
     if abs(res.check_z) > n_sigma:
-        res.check = (f"InvOLS in use ({res.method}) {res.value * 1e9:.4g} nm/V differs from this interval's contact slope "
-                     f"{ci.mean * 1e9:.4g} +- {ci.u * 1e9:.2g} nm/V by {100 * diff / ci.mean:+.1f} % "
-                     f"({res.check_z:+.1f} sigma): either the InvOLS was not measured again after the chip was remounted "
-                     f"(F_p scales with it), or the counter-surface is not hard (then its contact slope is no InvOLS)")
+        res.check = (
+            f"InvOLS in use ({res.method}) {res.value * 1e9:.4g} nm/V differs from this interval's contact slope "
+            f"{ci.mean * 1e9:.4g} +- {ci.u * 1e9:.2g} nm/V by {100 * diff / ci.mean:+.1f} % "
+            f"({res.check_z:+.1f} sigma): either the InvOLS was not measured again after the chip was remounted "
+            f"(F_p scales with it), or the counter-surface is not hard (then its contact slope is no InvOLS)"
+        )

@@ -25,6 +25,7 @@ Root attributes: tip, interval, outlier_rule, mean_rule, reader_config, cantilev
 ``warnings`` (an InvOLS that disagrees with the contact slope, curves that give no contact
 slope, a fallback).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -42,11 +43,15 @@ if TYPE_CHECKING:  # the stage's types; the reader (stage 4) needs none of the s
     from pipeline.forces.statistics import IntervalStats
 
 OUTLIER_RULES = {
-    "esd": "generalized ESD test (Rosner 1983) at significance outlier_alpha " "over accepted curves, up to floor(n/3) outliers (none if n < 3)",
-    "modified_z": "modified z-score 0.6745 |x - median| / MAD > outlier_z " "over accepted curves (none flagged if n < 3 or MAD = 0)",
+    "esd": "generalized ESD test (Rosner 1983) at significance outlier_alpha "
+    "over accepted curves, up to floor(n/3) outliers (none if n < 3)",
+    "modified_z": "modified z-score 0.6745 |x - median| / MAD > outlier_z "
+    "over accepted curves (none flagged if n < 3 or MAD = 0)",
 }
-MEAN_RULE = ("random-effects weighted mean over accepted non-outlier curves, weights 1/(u_i^2 + tau^2) with tau the "
-             "between-curve scatter (DerSimonian-Laird; the plain mean for equal u_i); sem: modified Knapp-Hartung")
+MEAN_RULE = (
+    "random-effects weighted mean over accepted non-outlier curves, weights 1/(u_i^2 + tau^2) with tau the "
+    "between-curve scatter (DerSimonian-Laird; the plain mean for equal u_i); sem: modified Knapp-Hartung"
+)
 
 
 @dataclass
@@ -91,8 +96,17 @@ def write_forces_h5(out_h5, res: IntervalForces):
     """Write the forces file; it appears at ``out_h5`` only when the ``with`` block (the stage's
     figure) ends without an error, so a failed stage leaves nothing that looks complete."""
     rule = OUTLIER_RULES[res.reader["outlier_rule"]]
-    with atomic_h5(out_h5, stage="forces", tip=res.tip, interval=res.interval, outlier_rule=rule, mean_rule=MEAN_RULE,
-                   reader_config=dict(res.reader), cantilever_config=dict(res.cantilever), warnings=res.warnings) as f:
+    with atomic_h5(
+        out_h5,
+        stage="forces",
+        tip=res.tip,
+        interval=res.interval,
+        outlier_rule=rule,
+        mean_rule=MEAN_RULE,
+        reader_config=dict(res.reader),
+        cantilever_config=dict(res.cantilever),
+        warnings=res.warnings,
+    ) as f:
         _write_curves(f, res)
         _write_calibration(f, res)
         _write_interval(f, res)
@@ -109,12 +123,18 @@ def _write_curves(f, res: IntervalForces) -> None:
     write_dataset(g, "used", res.used, "1", "accepted and not an outlier: enters the interval mean")
     write_dataset(g, "weight", st.weight, "1", "relative weight of the curve in the interval mean (0: not used)")
     write_dataset(g, "modified_z", st.modified_z, "1", "modified z-score of F_p (NaN if rejected)")
-    write_dataset(g, "delta_V", col["delta_V"], "V", "max adhesive deflection Delta in volts (NaN if not recorded in V)")
+    write_dataset(
+        g, "delta_V", col["delta_V"], "V", "max adhesive deflection Delta in volts (NaN if not recorded in V)"
+    )
     write_dataset(g, "delta_m", col["delta_m"], "m", "Delta in metres (= delta_V * InvOLS)")
     write_dataset(g, "u_delta_m", col["u_delta_m"], "m", "statistical uncertainty of Delta (noise + sampling step)")
-    write_dataset(g, "delta_min_m", col["delta_min_m"], "m", "raw minimum of the baseline-corrected retract (cross-check)")
+    write_dataset(
+        g, "delta_min_m", col["delta_min_m"], "m", "raw minimum of the baseline-corrected retract (cross-check)"
+    )
     write_dataset(g, "F_p", res.F_p, "N", "pull-off force k * Delta")
-    write_dataset(g, "u_F_p_stat", res.u_F_p_stat, "N", "statistical uncertainty of F_p of the curve (calibration excluded)")
+    write_dataset(
+        g, "u_F_p_stat", res.u_F_p_stat, "N", "statistical uncertainty of F_p of the curve (calibration excluded)"
+    )
     bu = "V" if np.isfinite(res.invols.value) else "m"
     write_dataset(g, "baseline_offset", col["off"], bu, "baseline offset at z = 0 (retract free part)")
     write_dataset(g, "baseline_slope", col["slope"], f"{bu}/m", "baseline tilt per m of piezo extension")
@@ -123,9 +143,17 @@ def _write_curves(f, res: IntervalForces) -> None:
     write_dataset(g, "z_pulloff", col["zpo"], "m", "piezo extension at the jump-off")
     write_dataset(g, "spring_constant_file", res.file_k, "N/m", "k stored in the file (NaN if none)")
     write_dataset(g, "invols_file", res.file_invols, "m/V", "InvOLS stored in the file (NaN if none)")
-    write_dataset(g, "invols_contact", res.contact["invols"], "m/V", "InvOLS from this curve's contact slope (NaN: see the reason)")
+    write_dataset(
+        g,
+        "invols_contact",
+        res.contact["invols"],
+        "m/V",
+        "InvOLS from this curve's contact slope (NaN: see the reason)",
+    )
     write_dataset(g, "u_invols_contact_fit", res.contact["u"], "m/V", "fit standard error of that InvOLS")
-    write_dataset(g, "invols_contact_reason", res.contact["reason"], "1", "why the curve gives no contact slope ('' if it does)")
+    write_dataset(
+        g, "invols_contact_reason", res.contact["reason"], "1", "why the curve gives no contact slope ('' if it does)"
+    )
 
 
 def _write_calibration(f, res: IntervalForces) -> None:
@@ -133,31 +161,52 @@ def _write_calibration(f, res: IntervalForces) -> None:
     contact = inv.contact
     c = create_group(f, "calibration", "NXcollection")
     for name, val, unit, desc in (
-            ("k", cal.k, "N/m", "spring constant used"), ("u_k", cal.u_k, "N/m", "1-sigma uncertainty of k"),
-            ("invols", inv.value, "m/V", "deflection sensitivity used for this interval (NaN: deflection recorded in m)"),
-            ("u_invols", inv.u, "m/V", "1-sigma uncertainty of InvOLS"),
-            ("factor", p.factor, "N/V", "k * InvOLS: F_p = factor * delta_V"),
-            ("u_factor", p.u_factor, "N/V", "1-sigma uncertainty of k * InvOLS (correlations included)"),
-            ("u_factor_rel", p.u_factor_rel, "1", "relative calibration uncertainty of F_p"),
-            ("u_k_rel", p.u_k_rel, "1", "relative uncertainty of k (common to all intervals of the tip)"),
-            ("u_invols_rel", p.u_invols_rel, "1", "relative uncertainty of this interval's InvOLS (its own unless invols_shared)"),
-            ("corr_k_invols", p.corr_k_invols, "1", "correlation coefficient of k and InvOLS"),
-            ("k_method", cal.k_method, "1", "given | file | reference_lever | thermal"),
-            ("invols_method", inv.method, "1", "contact | interval_curves | interval_given | given | hard_sample | file | none"),
-            ("invols_shared", inv.shared, "1", "one InvOLS for the whole tip (its error common to all intervals)"),
-            ("invols_tip", cal.invols, "m/V", "tip-level InvOLS of the calibration session (NaN if none)"),
-            ("u_invols_tip", cal.u_invols, "m/V", "its 1-sigma uncertainty"),
-            ("invols_contact", contact.mean if contact else np.nan, "m/V",
-             "InvOLS from the contact slopes of this interval's own curves (mean)"),
-            ("u_invols_contact", contact.u if contact else np.nan, "m/V", "its standard error with the systematic floor"),
-            ("n_invols_contact", contact.n if contact else 0, "1", "curves that gave a contact slope"),
-            ("contact_fit_deflection", contact.fit_range_m if contact else np.full(2, np.nan), "m",
-             "mean deflection above the baseline at the two ends of the contact-slope fit (its load range: "
-             "the inversion corrects a contact InvOLS for the tip's finite contact stiffness over it)"),
-            ("contact_segment", str(res.cantilever["contact_segment"]), "1", "segment the contact slopes were fitted on"),
-            ("invols_check_z", inv.check_z, "1", "(InvOLS in use - contact) / combined uncertainty (NaN: not checked)"),
-            ("invols_check", inv.check, "1", "'' or what disagrees (a forgotten remount)"),
-            ("k_source", cal.k_source, "1", "where k came from"), ("invols_source", inv.source, "1", "where InvOLS came from")):
+        ("k", cal.k, "N/m", "spring constant used"),
+        ("u_k", cal.u_k, "N/m", "1-sigma uncertainty of k"),
+        ("invols", inv.value, "m/V", "deflection sensitivity used for this interval (NaN: deflection recorded in m)"),
+        ("u_invols", inv.u, "m/V", "1-sigma uncertainty of InvOLS"),
+        ("factor", p.factor, "N/V", "k * InvOLS: F_p = factor * delta_V"),
+        ("u_factor", p.u_factor, "N/V", "1-sigma uncertainty of k * InvOLS (correlations included)"),
+        ("u_factor_rel", p.u_factor_rel, "1", "relative calibration uncertainty of F_p"),
+        ("u_k_rel", p.u_k_rel, "1", "relative uncertainty of k (common to all intervals of the tip)"),
+        (
+            "u_invols_rel",
+            p.u_invols_rel,
+            "1",
+            "relative uncertainty of this interval's InvOLS (its own unless invols_shared)",
+        ),
+        ("corr_k_invols", p.corr_k_invols, "1", "correlation coefficient of k and InvOLS"),
+        ("k_method", cal.k_method, "1", "given | file | reference_lever | thermal"),
+        (
+            "invols_method",
+            inv.method,
+            "1",
+            "contact | interval_curves | interval_given | given | hard_sample | file | none",
+        ),
+        ("invols_shared", inv.shared, "1", "one InvOLS for the whole tip (its error common to all intervals)"),
+        ("invols_tip", cal.invols, "m/V", "tip-level InvOLS of the calibration session (NaN if none)"),
+        ("u_invols_tip", cal.u_invols, "m/V", "its 1-sigma uncertainty"),
+        (
+            "invols_contact",
+            contact.mean if contact else np.nan,
+            "m/V",
+            "InvOLS from the contact slopes of this interval's own curves (mean)",
+        ),
+        ("u_invols_contact", contact.u if contact else np.nan, "m/V", "its standard error with the systematic floor"),
+        ("n_invols_contact", contact.n if contact else 0, "1", "curves that gave a contact slope"),
+        (
+            "contact_fit_deflection",
+            contact.fit_range_m if contact else np.full(2, np.nan),
+            "m",
+            "mean deflection above the baseline at the two ends of the contact-slope fit (its load range: "
+            "the inversion corrects a contact InvOLS for the tip's finite contact stiffness over it)",
+        ),
+        ("contact_segment", str(res.cantilever["contact_segment"]), "1", "segment the contact slopes were fitted on"),
+        ("invols_check_z", inv.check_z, "1", "(InvOLS in use - contact) / combined uncertainty (NaN: not checked)"),
+        ("invols_check", inv.check, "1", "'' or what disagrees (a forgotten remount)"),
+        ("k_source", cal.k_source, "1", "where k came from"),
+        ("invols_source", inv.source, "1", "where InvOLS came from"),
+    ):
         write_dataset(c, name, val, unit, desc)
     for gname, items in cal.details.items():
         sub = create_group(c, gname, "NXcollection")
@@ -168,20 +217,45 @@ def _write_calibration(f, res: IntervalForces) -> None:
 def _write_interval(f, res: IntervalForces) -> None:
     st, used, col = res.stats, res.used, res.columns
     u_cal_rel = res.parts.u_factor_rel
-    iv = create_group(f, "interval", "NXcollection", outlier_rule=OUTLIER_RULES[res.reader["outlier_rule"]], mean_rule=MEAN_RULE)
+    iv = create_group(
+        f, "interval", "NXcollection", outlier_rule=OUTLIER_RULES[res.reader["outlier_rule"]], mean_rule=MEAN_RULE
+    )
     for name, val, unit, desc in (
-            ("F_p_mean", st.mean, "N", MEAN_RULE), ("F_p_std", st.std, "N", "standard deviation (ddof=1; NaN if 1 curve)"),
-            ("F_p_sem", st.sem, "N", "standard error of the mean (statistical part)"),
-            ("F_p_median", st.median, "N", "median of used curves"),
-            ("n_curves_used", st.n_used, "1", "curves in the mean"), ("n_curves_total", len(res.files), "1", "curves found"),
-            ("n_curves_rejected", int((~res.accepted).sum()), "1", "rejected curves (see curves/rejection_reason)"),
-            ("n_outliers", int(st.outlier.sum()), "1", "accepted curves flagged as outliers"),
-            ("F_p_tau", st.tau, "N", "between-curve scatter of F_p beyond the curves' own uncertainties (random effects)"),
-            ("delta_V_mean", float(np.sum(st.weight[used] * col["delta_V"][used])), "V", "weighted mean Delta of used curves (V)"),
-            ("delta_m_mean", float(np.sum(st.weight[used] * col["delta_m"][used])), "m", "weighted mean Delta of used curves (m)"),
-            ("u_F_p_calibration", st.mean * u_cal_rel, "N", "calibration part (k common to the tip; InvOLS the interval's own unless shared)"),
-            ("u_F_p_calibration_rel", u_cal_rel, "1", "relative calibration uncertainty"),
-            ("u_F_p_total", float(np.hypot(np.nan_to_num(st.sem), st.mean * u_cal_rel)), "N", "sqrt(sem^2 + calibration^2)")):
+        ("F_p_mean", st.mean, "N", MEAN_RULE),
+        ("F_p_std", st.std, "N", "standard deviation (ddof=1; NaN if 1 curve)"),
+        ("F_p_sem", st.sem, "N", "standard error of the mean (statistical part)"),
+        ("F_p_median", st.median, "N", "median of used curves"),
+        ("n_curves_used", st.n_used, "1", "curves in the mean"),
+        ("n_curves_total", len(res.files), "1", "curves found"),
+        ("n_curves_rejected", int((~res.accepted).sum()), "1", "rejected curves (see curves/rejection_reason)"),
+        ("n_outliers", int(st.outlier.sum()), "1", "accepted curves flagged as outliers"),
+        ("F_p_tau", st.tau, "N", "between-curve scatter of F_p beyond the curves' own uncertainties (random effects)"),
+        (
+            "delta_V_mean",
+            float(np.sum(st.weight[used] * col["delta_V"][used])),
+            "V",
+            "weighted mean Delta of used curves (V)",
+        ),
+        (
+            "delta_m_mean",
+            float(np.sum(st.weight[used] * col["delta_m"][used])),
+            "m",
+            "weighted mean Delta of used curves (m)",
+        ),
+        (
+            "u_F_p_calibration",
+            st.mean * u_cal_rel,
+            "N",
+            "calibration part (k common to the tip; InvOLS the interval's own unless shared)",
+        ),
+        ("u_F_p_calibration_rel", u_cal_rel, "1", "relative calibration uncertainty"),
+        (
+            "u_F_p_total",
+            float(np.hypot(np.nan_to_num(st.sem), st.mean * u_cal_rel)),
+            "N",
+            "sqrt(sem^2 + calibration^2)",
+        ),
+    ):
         write_dataset(iv, name, val, unit, desc)
     iv["calibration"] = h5py.SoftLink("/calibration")
 
@@ -223,8 +297,15 @@ def _read_interval(f) -> dict:
     fp_std = float(fp_std) if fp_std is not None else np.nan
     if fp_sem is None:
         fp_sem = fp_std / np.sqrt(n_curves) if n_curves > 0 else np.nan
-    return {"F_p_mean": fp_mean, "F_p_std": fp_std, "F_p_sem": float(fp_sem), "n_curves": n_curves,
-            "F_p_curves": fp_curves, "accepted": accepted, "u_cal_rel": read_value(g, "u_F_p_calibration_rel", None)}
+    return {
+        "F_p_mean": fp_mean,
+        "F_p_std": fp_std,
+        "F_p_sem": float(fp_sem),
+        "n_curves": n_curves,
+        "F_p_curves": fp_curves,
+        "accepted": accepted,
+        "u_cal_rel": read_value(g, "u_F_p_calibration_rel", None),
+    }
 
 
 def _read_calibration(f) -> dict:

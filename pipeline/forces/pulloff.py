@@ -37,6 +37,7 @@ The sampling step limits what any method sees at a sharp jump: the instability l
 last contact sample and the next one, so u(Delta) includes the contact step over sqrt(12)
 besides the fit error.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -86,7 +87,9 @@ def _jump_index(dc: np.ndarray, path, noise: float = 0.0) -> int:
         raise ForceCurveError(path, "no pull-off event: the retract curve never goes below its baseline")
     back = np.flatnonzero(dc[i_min:] >= 0.5 * dc[i_min])
     if back.size == 0:
-        raise ForceCurveError(path, "no pull-off event: the deflection does not jump back to the baseline before the end of the retract")
+        raise ForceCurveError(
+            path, "no pull-off event: the deflection does not jump back to the baseline before the end of the retract"
+        )
     i_half = i_min + int(back[0])
     return i_min + int(np.argmax(np.diff(dc[i_min : i_half + 1])))
 
@@ -94,7 +97,9 @@ def _jump_index(dc: np.ndarray, path, noise: float = 0.0) -> int:
 def _baseline(z, d, mask, min_points, path, what) -> Line:
     n = int(mask.sum())
     if n < min_points:
-        raise ForceCurveError(path, f"free part of the retract {what} is too short for a baseline ({n} points < {min_points})")
+        raise ForceCurveError(
+            path, f"free part of the retract {what} is too short for a baseline ({n} points < {min_points})"
+        )
     return fit_line(z[mask], d[mask])
 
 
@@ -131,7 +136,7 @@ def _abscissa(z, dc, lo, hi):
     """The regressor for lines over samples lo..hi: the recorded height, or the sample index
     (time; the piezo moves at a steady rate) where the height record is clearly noisier than
     the deflection it drives (its residuals < 0.8 x the height fit's).  Returns (x, by_index)."""
-    zc, yc, ic = z[lo:hi + 1], dc[lo:hi + 1], np.arange(lo, hi + 1, dtype=float)
+    zc, yc, ic = z[lo : hi + 1], dc[lo : hi + 1], np.arange(lo, hi + 1, dtype=float)
     by_index = fit_line(ic, yc, clip=np.inf).rms < 0.8 * fit_line(zc, yc, clip=np.inf).rms
     return (np.arange(z.size, dtype=float) if by_index else z), by_index
 
@@ -158,9 +163,11 @@ def _clipped_run(z, d, dc, i_min, fit_points, min_run=5):
     line = fit_line(np.arange(lo, a, dtype=float), dc[lo:a], clip=np.inf)
     below = float(dc[a] - line(float(b)))
     if below > max(4.0 * line.rms, 0.1 * -float(dc[a])):
-        return (f"the adhesive dip is clipped: {b - a + 1} samples sit at the lowest recorded value ({rail:.6g}, the "
-                f"detector's or the ADC's limit) where the contact line still falls: its real depth is not recorded, "
-                f"so this is no pull-off (re-record with a larger deflection range or a lower gain)")
+        return (
+            f"the adhesive dip is clipped: {b - a + 1} samples sit at the lowest recorded value ({rail:.6g}, the "
+            f"detector's or the ADC's limit) where the contact line still falls: its real depth is not recorded, "
+            f"so this is no pull-off (re-record with a larger deflection range or a lower gain)"
+        )
     return ""
 
 
@@ -364,8 +371,11 @@ def _fitted_minimum(z, dc, line, i_j, i_min, jump_fraction, fit_points):
         i_end = _transition_start(dc, i_j, i_min, step_c, line.rms)
     else:
         i_end = i_j + int(np.argmax(dc[i_j:] >= 0.5 * dc[i_min]))
-    branch = (_detaching_branch(dc, i_min, i_end, contact, x, max(contact.rms, 1e-300))
-              if contact is not None else np.zeros(0, int))
+    branch = (
+        _detaching_branch(dc, i_min, i_end, contact, x, max(contact.rms, 1e-300))
+        if contact is not None
+        else np.zeros(0, int)
+    )
     # jitter: samples after the largest rise that are back on the contact line (not a filter's transition)
     i_jit = _last_contact(dc, i_j, int(fit_points), line.rms) if jump_fraction >= 0.5 else i_j
     i_last = i_jit if i_jit != i_j else i_end
@@ -382,14 +392,16 @@ def _fitted_minimum(z, dc, line, i_j, i_min, jump_fraction, fit_points):
             shape += " before the jump"
             i_last = lo_w + int(np.argmin(dc[lo_w : i_last + 1]))
         else:
-            delta, u_fit, step, i_last = _contact_extrapolation(z, dc, i_last, int(fit_points), i_j,
-                                                                robust=i_last != i_end)
+            delta, u_fit, step, i_last = _contact_extrapolation(
+                z, dc, i_last, int(fit_points), i_j, robust=i_last != i_end
+            )
         i_j = i_last
     return delta, u_fit, shape, step, i_j
 
 
-def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, method="fit",
-                   fit_points=20, min_snr=5.0) -> PullOff:
+def detect_pulloff(
+    z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, method="fit", fit_points=20, min_snr=5.0
+) -> PullOff:
     """Find Delta on a retract segment (``z`` decreasing, m; ``d`` deflection, V or m)."""
     z, d = np.asarray(z, float), np.asarray(d, float)
     idx = np.arange(z.size)
@@ -419,7 +431,10 @@ def detect_pulloff(z, d, *, path="", baseline_gap=0.2, min_baseline_points=50, m
     else:
         delta, u_fit, shape, step, i_j = _fitted_minimum(z, dc, line, i_j, i_min, jump_fraction, int(fit_points))
     if not delta > min_snr * line.rms:
-        raise ForceCurveError(path, f"no pull-off event: adhesive deflection {delta:.3g} is below force_curves.min_pulloff_snr "
-                                    f"({min_snr:g}) x the baseline noise rms {line.rms:.3g} (same units as the deflection)")
+        raise ForceCurveError(
+            path,
+            f"no pull-off event: adhesive deflection {delta:.3g} is below force_curves.min_pulloff_snr "
+            f"({min_snr:g}) x the baseline noise rms {line.rms:.3g} (same units as the deflection)",
+        )
     u = float(np.hypot(u_fit, step / np.sqrt(12.0)))
     return PullOff(delta, u, delta_min, int(i_j), float(z[i_j]), line, line.n, jump_fraction, shape)

@@ -15,6 +15,7 @@ the wave note (``Indexes: 0,1008,2015`` and ``Direction: NaN,1,-1``).
 afmformats errors derive from BaseException, so they are caught by name and
 re-raised as :class:`ForceCurveError` naming the file.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -102,7 +103,9 @@ def read_afmformats_curves(path, reader: dict | None = None) -> list[ForceCurve]
     if not path.is_file():
         raise ForceCurveError(path, "file not found")
     if path.suffix not in supported_suffixes():
-        raise ForceCurveError(path, f"extension {path.suffix!r} is not an afmformats format ({', '.join(sorted(supported_suffixes()))})")
+        raise ForceCurveError(
+            path, f"extension {path.suffix!r} is not an afmformats format ({', '.join(sorted(supported_suffixes()))})"
+        )
     missing = set()
     try:
         data = _load(path)
@@ -142,9 +145,12 @@ def _curve(path, data, j, missing, reader, hcol) -> ForceCurve:
         # (AFM Workshop exports): undone with the values the tip YAML says the instrument used
         k_i, s_i = reader.get("instrument_spring_constant"), reader.get("instrument_deflection_sensitivity")
         if not (k_i and s_i):
-            raise ForceCurveError(path, "the file stores force (N) without the spring constant and deflection "
-                                        "sensitivity the instrument computed it with; give cantilever.spring_constant "
-                                        "and cantilever.deflection_sensitivity (the values set in the instrument)")
+            raise ForceCurveError(
+                path,
+                "the file stores force (N) without the spring constant and deflection "
+                "sensitivity the instrument computed it with; give cantilever.spring_constant "
+                "and cantilever.deflection_sensitivity (the values set in the instrument)",
+            )
         volts = force / (float(k_i) * float(s_i))
     else:
         volts = force / ((k_file or 1.0) * (s_file or 1.0))
@@ -157,7 +163,18 @@ def _curve(path, data, j, missing, reader, hcol) -> ForceCurve:
         parts = (z[seg == 0], volts[seg == 0], z[seg == 1], volts[seg == 1])
     else:
         parts = split_at_turnaround(name, z, volts)
-    meta = {k: md[k] for k in ("instrument", "software", "date", "time", "speed approach", "speed retract", "point count") if k in md}
-    curve = ForceCurve(name, *parts, defl_units="V", spring_constant=k_file, invols=s_file,
-                       source_format=str(md.get("format", "afmformats")), metadata=meta)
+    meta = {
+        k: md[k]
+        for k in ("instrument", "software", "date", "time", "speed approach", "speed retract", "point count")
+        if k in md
+    }
+    curve = ForceCurve(
+        name,
+        *parts,
+        defl_units="V",
+        spring_constant=k_file,
+        invols=s_file,
+        source_format=str(md.get("format", "afmformats")),
+        metadata=meta,
+    )
     return check_segments(curve)

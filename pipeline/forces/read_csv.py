@@ -8,6 +8,7 @@ such as ``pause`` are ignored).  Without a segment column the ramp is split wher
 piezo reverses.  Lines starting with ``#`` are comments; the delimiter (comma, tab,
 semicolon, or white space as in many .dat files) is taken from the header line.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -49,7 +50,9 @@ def read_csv_curve(path, reader: dict) -> ForceCurve:
     try:
         header = _header(path)
     except UnicodeDecodeError:
-        raise ForceCurveError(path, "not a text CSV/TSV file (binary content); set force_curves.format or check the file type") from None
+        raise ForceCurveError(
+            path, "not a text CSV/TSV file (binary content); set force_curves.format or check the file type"
+        ) from None
     sep = "\t" if "\t" in header else (";" if ";" in header else ("," if "," in header else r"\s+"))
     try:
         df = pd.read_csv(path, sep=sep, comment="#", skipinitialspace=True)
@@ -69,9 +72,12 @@ def read_csv_curve(path, reader: dict) -> ForceCurve:
     z, d = sign * h_fac * num[:, 0], d_fac * num[:, 1]
     units = "V" if d_kind == "voltage" else "m"
     if units == "V" and np.nanmax(np.abs(d), initial=0.0) > MAX_DETECTOR_VOLTS:
-        raise ForceCurveError(path, f"the deflection column reaches {np.nanmax(np.abs(d)):.4g} V, beyond any photodetector's "
-                                    f"range (+-{MAX_DETECTOR_VOLTS:g} V): is it in nm? set force_curves.deflection_unit "
-                                    "(e.g. 'nm') to the unit the file uses")
+        raise ForceCurveError(
+            path,
+            f"the deflection column reaches {np.nanmax(np.abs(d)):.4g} V, beyond any photodetector's "
+            f"range (+-{MAX_DETECTOR_VOLTS:g} V): is it in nm? set force_curves.deflection_unit "
+            "(e.g. 'nm') to the unit the file uses",
+        )
     seg_col = cols.get("segment")
     if seg_col and seg_col in df.columns:
         lab = df[seg_col].astype(str).str.strip().str.lower().str.replace(r"\.0$", "", regex=True).to_numpy()

@@ -1,4 +1,5 @@
 """Dispatch a force-curve file to the CSV or the afmformats reader."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -9,6 +9,7 @@ the reference lever.  Tilt: sources differ -- ``tilt_correction='cos'`` (p = 1,
 Tortonese & Kirk; Gibson et al.) or ``'cos2'`` (p = 2, e.g. Hutter 2005 for the
 tilted-lever stiffness), ``'none'`` (p = 0).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,5 +28,8 @@ def reference_lever_k(k_ref, invols_hard, invols_ref, *, length=None, offset=0.0
         k_eff = k_ref * (length / (length - offset)) ** 3
     ratio = invols_ref / invols_hard
     if not ratio > 1:
-        raise ValueError(f"InvOLS on the reference lever ({invols_ref:.4g} m/V) must " f"exceed the hard-surface InvOLS ({invols_hard:.4g} m/V)")
+        raise ValueError(
+            f"InvOLS on the reference lever ({invols_ref:.4g} m/V) must "
+            f"exceed the hard-surface InvOLS ({invols_hard:.4g} m/V)"
+        )
     return float(k_eff * (ratio - 1.0) * np.cos(tilt) ** TILT_POWER[tilt_correction])

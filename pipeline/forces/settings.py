@@ -3,6 +3,7 @@
 These mirror the ``default:`` entries of ``pipeline/schemas/tip.schema.yaml`` so the
 stage also works on dicts that did not pass through the config loader.
 """
+
 from __future__ import annotations
 
 import glob
@@ -37,7 +38,13 @@ CANTILEVER_DEFAULTS = {
     "contact_segment": "approach",
 }
 
-REFERENCE_DEFAULTS = {"offset": 0.0, "offset_uncertainty": 0.0, "length_uncertainty": 0.0, "tilt": 0.0, "tilt_correction": "cos"}
+REFERENCE_DEFAULTS = {
+    "offset": 0.0,
+    "offset_uncertainty": 0.0,
+    "length_uncertainty": 0.0,
+    "tilt": 0.0,
+    "tilt_correction": "cos",
+}
 
 THERMAL_DEFAULTS = {"temperature": 295.0, "temperature_uncertainty": 1.0, "lever_shape": "rectangular"}
 

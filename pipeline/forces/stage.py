@@ -6,6 +6,7 @@ remounted after every TEM session) unless ``invols_shared``.  Warnings (an InvOL
 disagrees with the contact slope, curves that give no contact slope, a fallback) go into the
 file (``pipeline.forces.io``, its layout) and the log.
 """
+
 from __future__ import annotations
 
 import logging
@@ -35,8 +36,17 @@ def _expand(paths, cfg):
     return out
 
 
-def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, tip="", interval="",
-               interval_cfg: dict | None = None) -> None:
+def run_forces(
+    curve_paths,
+    out_h5,
+    out_png,
+    *,
+    cantilever: dict,
+    reader: dict,
+    tip="",
+    interval="",
+    interval_cfg: dict | None = None,
+) -> None:
     """Analyse one interval's force curves; write ``out_h5`` and ``out_png`` atomically.
 
     ``cantilever``/``reader``: the SI-converted ``cantilever:``/``force_curves:`` sections
@@ -58,19 +68,41 @@ def run_forces(curve_paths, out_h5, out_png, *, cantilever: dict, reader: dict, 
     accepted = _read_pulloffs(rows, reader, inv.value, label)
     col = _pulloff_columns(rows)
     F_p, u_F_stat = cal.k * col["delta_m"], cal.k * col["u_delta_m"]
-    st = interval_stats(F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"], u=u_F_stat)
+    st = interval_stats(
+        F_p, accepted, reader["outlier_z"], rule=reader["outlier_rule"], alpha=reader["outlier_alpha"], u=u_F_stat
+    )
     used = accepted & ~st.outlier
     _log_decisions(label, rows, cal, inv, st, col)
     res = IntervalForces(
-        tip=tip, interval=interval, reader=reader, cantilever=cant, warnings=warnings, files=[r["file"] for r in rows],
-        reasons=[r["reason"] for r in rows], accepted=accepted, used=used, columns=col, F_p=F_p, u_F_p_stat=u_F_stat,
-        file_k=[_nan(r, "spring_constant") for r in rows], file_invols=[_nan(r, "invols") for r in rows],
-        contact=_contact_columns(inv, rows), stats=st, cal=cal, invols=inv, parts=calibration_parts(cal, inv))
+        tip=tip,
+        interval=interval,
+        reader=reader,
+        cantilever=cant,
+        warnings=warnings,
+        files=[r["file"] for r in rows],
+        reasons=[r["reason"] for r in rows],
+        accepted=accepted,
+        used=used,
+        columns=col,
+        F_p=F_p,
+        u_F_p_stat=u_F_stat,
+        file_k=[_nan(r, "spring_constant") for r in rows],
+        file_invols=[_nan(r, "invols") for r in rows],
+        contact=_contact_columns(inv, rows),
+        stats=st,
+        cal=cal,
+        invols=inv,
+        parts=calibration_parts(cal, inv),
+    )
     with write_forces_h5(out_h5, res):  # the file appears only once the figure is written too
         from pipeline.forces.figures import plot_retracts  # matplotlib only where a figure is drawn
 
-        plot_retracts(out_png, [_plot_item(r, cal.k, inv.value, st.outlier[i]) for i, r in enumerate(rows) if r["curve"] is not None],
-                      n_total=len(rows), title=_figure_title(tip, interval, st))
+        plot_retracts(
+            out_png,
+            [_plot_item(r, cal.k, inv.value, st.outlier[i]) for i, r in enumerate(rows) if r["curve"] is not None],
+            n_total=len(rows),
+            title=_figure_title(tip, interval, st),
+        )
 
 
 def _settings(reader: dict, cantilever: dict) -> tuple[dict, dict]:
@@ -119,7 +151,8 @@ def _read_pulloffs(rows, reader: dict, invols: float, label: str) -> np.ndarray:
         raise ForcesStageError(
             f"{label}: only {int(accepted.sum())} usable force curve(s) ({used_files}) of {len(rows)}; the pull-off "
             f"scatter cannot be estimated from fewer than {int(reader['min_curves'])}: add curves, or set "
-            "force_curves.min_curves: 1 to accept it (no statistical uncertainty of F_p), no output written")
+            "force_curves.min_curves: 1 to accept it (no statistical uncertainty of F_p), no output written"
+        )
     return accepted
 
 
@@ -135,21 +168,49 @@ def _pulloff_columns(rows) -> dict:
 
 def _log_decisions(label, rows, cal, inv, st, col) -> None:
     """The stage's decisions in plain lines (the log is the lab notebook)."""
-    log.info("%s: k = %.4g N/m +- %.2g %% (%s); InvOLS = %.4g nm/V +- %.2g %% (%s)", label, cal.k, 100 * cal.u_k_rel,
-             cal.k_source, inv.value * 1e9, 100 * inv.u / inv.value if inv.value else float("nan"), inv.source)
+    log.info(
+        "%s: k = %.4g N/m +- %.2g %% (%s); InvOLS = %.4g nm/V +- %.2g %% (%s)",
+        label,
+        cal.k,
+        100 * cal.u_k_rel,
+        cal.k_source,
+        inv.value * 1e9,
+        100 * inv.u / inv.value if inv.value else float("nan"),
+        inv.source,
+    )
     if inv.contact is not None and inv.contact.n:
-        log.info("%s: contact slopes of %d curve(s): InvOLS %.4g +- %.2g nm/V", label, inv.contact.n, inv.contact.mean * 1e9,
-                 inv.contact.u * 1e9)
+        log.info(
+            "%s: contact slopes of %d curve(s): InvOLS %.4g +- %.2g nm/V",
+            label,
+            inv.contact.n,
+            inv.contact.mean * 1e9,
+            inv.contact.u * 1e9,
+        )
     for i, r in enumerate(rows):
         name = Path(r["file"]).name
         if r["reason"]:
             log.info("%s: curve %s rejected: %s", label, name, r["reason"])
         elif "po" in r:
             po = r["po"]["_po"]
-            log.info("%s: curve %s: Delta = %.4g nm +- %.2g (%s)%s, weight %.3f", label, name, col["delta_m"][i] * 1e9,
-                     col["u_delta_m"][i] * 1e9, po.shape, "; outlier, not averaged" if st.outlier[i] else "", st.weight[i])
-    log.info("%s: F_p = %.4g nN, standard error %.2g nN, SD %.2g nN over %d curve(s) (%s)", label, st.mean * 1e9,
-             np.nan_to_num(st.sem) * 1e9, np.nan_to_num(st.std) * 1e9, st.n_used, MEAN_RULE.split(",")[0])
+            log.info(
+                "%s: curve %s: Delta = %.4g nm +- %.2g (%s)%s, weight %.3f",
+                label,
+                name,
+                col["delta_m"][i] * 1e9,
+                col["u_delta_m"][i] * 1e9,
+                po.shape,
+                "; outlier, not averaged" if st.outlier[i] else "",
+                st.weight[i],
+            )
+    log.info(
+        "%s: F_p = %.4g nN, standard error %.2g nN, SD %.2g nN over %d curve(s) (%s)",
+        label,
+        st.mean * 1e9,
+        np.nan_to_num(st.sem) * 1e9,
+        np.nan_to_num(st.std) * 1e9,
+        st.n_used,
+        MEAN_RULE.split(",")[0],
+    )
 
 
 def _figure_title(tip, interval, st) -> str:
@@ -206,12 +267,28 @@ def _volts_or_m(c, invols: float):
 
 def _pulloff(c, reader, invols: float) -> dict:
     d, to_m, volts = _volts_or_m(c, invols)
-    po = detect_pulloff(c.z_retract, d, path=c.path, baseline_gap=reader["baseline_gap"],
-                        min_baseline_points=int(reader["min_baseline_points"]), method=reader["pulloff_method"],
-                        fit_points=int(reader["pulloff_fit_points"]), min_snr=float(reader["min_pulloff_snr"]))
-    return {"delta_V": po.delta if volts else np.nan, "delta_m": po.delta * to_m, "u_delta_m": po.u_delta * to_m,
-            "delta_min_m": po.delta_min * to_m, "off": po.baseline.offset, "slope": po.baseline.slope,
-            "noise": po.baseline.rms, "nb": po.n_baseline, "zpo": po.z_pulloff, "_po": po}
+    po = detect_pulloff(
+        c.z_retract,
+        d,
+        path=c.path,
+        baseline_gap=reader["baseline_gap"],
+        min_baseline_points=int(reader["min_baseline_points"]),
+        method=reader["pulloff_method"],
+        fit_points=int(reader["pulloff_fit_points"]),
+        min_snr=float(reader["min_pulloff_snr"]),
+    )
+    return {
+        "delta_V": po.delta if volts else np.nan,
+        "delta_m": po.delta * to_m,
+        "u_delta_m": po.u_delta * to_m,
+        "delta_min_m": po.delta_min * to_m,
+        "off": po.baseline.offset,
+        "slope": po.baseline.slope,
+        "noise": po.baseline.rms,
+        "nb": po.n_baseline,
+        "zpo": po.z_pulloff,
+        "_po": po,
+    }
 
 
 def _plot_item(r, k, invols, outlier):
@@ -219,17 +296,39 @@ def _plot_item(r, k, invols, outlier):
     try:
         d, to_m, _ = _volts_or_m(c, invols)
     except CalibrationError:
-        return {"x": np.zeros(0), "force": np.zeros(0), "baseline": None, "x_po": 0, "F_po": 0, "accepted": False, "outlier": False}
+        return {
+            "x": np.zeros(0),
+            "force": np.zeros(0),
+            "baseline": None,
+            "x_po": 0,
+            "F_po": 0,
+            "accepted": False,
+            "outlier": False,
+        }
     fac = k * to_m
     po = r.get("_po") or (r.get("po") or {}).get("_po")
     if po is None or r["reason"]:
         x = c.z_retract.max() - c.z_retract
-        return {"x": x, "force": fac * (d - np.median(d[-max(10, d.size // 5):])), "baseline": None, "x_po": 0, "F_po": 0,
-                "accepted": False, "outlier": False}
+        return {
+            "x": x,
+            "force": fac * (d - np.median(d[-max(10, d.size // 5) :])),
+            "baseline": None,
+            "x_po": 0,
+            "F_po": 0,
+            "accepted": False,
+            "outlier": False,
+        }
     x = po.z_pulloff - c.z_retract
     ref = po.baseline(po.z_pulloff)
-    return {"x": x, "force": fac * (d - ref), "baseline": fac * (po.baseline(c.z_retract) - ref), "x_po": 0.0, "F_po": -fac * po.delta,
-            "accepted": True, "outlier": bool(outlier)}
+    return {
+        "x": x,
+        "force": fac * (d - ref),
+        "baseline": fac * (po.baseline(c.z_retract) - ref),
+        "x_po": 0.0,
+        "F_po": -fac * po.delta,
+        "accepted": True,
+        "outlier": bool(outlier),
+    }
 
 
 def _all_rejected(label, rows) -> str:

@@ -23,6 +23,7 @@ Knapp-Hartung one (Knapp & Hartung 2003; Roever et al. 2015): sqrt(max(1, q) / s
 q = sum w (x - mean)^2 / (n - 1), which is std / sqrt(n) for equal u_i and never below what
 the curves' own uncertainties allow.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -109,8 +110,9 @@ def random_effects_mean(x, u):
     return m, float(np.sqrt(max(q, 1.0) / w.sum())), float(np.sqrt(tau2)), w / w.sum()
 
 
-def interval_stats(values, accepted, threshold: float = 3.5, rule: str = "esd", alpha: float = 0.01,
-                   u=None) -> IntervalStats:
+def interval_stats(
+    values, accepted, threshold: float = 3.5, rule: str = "esd", alpha: float = 0.01, u=None
+) -> IntervalStats:
     """Statistics of ``values`` over ``accepted`` curves (bool mask, same length).
 
     ``rule`` "esd" (generalized ESD at ``alpha``) or "modified_z" (|M| > ``threshold``);

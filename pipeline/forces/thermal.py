@@ -13,6 +13,7 @@ chi-square scatter of an averaged periodogram.
 Thermal file (CSV): either ``time_s, deflection_V`` (or ``deflection_m``), turned into
 a Welch PSD, or ``frequency_Hz, psd_V2_per_Hz`` (or ``psd_m2_per_Hz``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -48,6 +49,7 @@ def psd_from_series(t, x, nperseg=None):
     n = x.size
     nperseg = int(nperseg or min(n, 2 ** max(8, int(np.log2(n / 32)))))
     from scipy.signal import welch  # lazy: scipy.signal costs ~1 s to import
+
     f, P = welch(x - x.mean(), fs=fs, window="hann", nperseg=nperseg)
     return f, P, max(1, 2 * n // nperseg - 1)
 
@@ -55,7 +57,9 @@ def psd_from_series(t, x, nperseg=None):
 def fit_sho(f, P, *, fmin=None, fmax=None, n_avg=0) -> SHOFit:
     """Fit the SHO + white model to the highest peak of P in [fmin, fmax]."""
     f, P = np.asarray(f, float), np.asarray(P, float)
-    band = (f > (fmin if fmin is not None else 3 * f[1] if f.size > 1 else 0)) & (f < (fmax if fmax is not None else np.inf))
+    band = (f > (fmin if fmin is not None else 3 * f[1] if f.size > 1 else 0)) & (
+        f < (fmax if fmax is not None else np.inf)
+    )
     fb, Pb = f[band], P[band]
     if fb.size < 10:
         raise ValueError("thermal spectrum: fewer than 10 points in the fit band")
@@ -98,7 +102,10 @@ def read_thermal_file(path):
     for pcol, unit in (("psd_V2_per_Hz", "V"), ("psd_m2_per_Hz", "m")):
         if "frequency_Hz" in cols and pcol in cols:
             return df["frequency_Hz"].to_numpy(float), df[pcol].to_numpy(float), 0, unit
-    raise ValueError(f"{path}: thermal file needs columns time_s + deflection_V|deflection_m " f"or frequency_Hz + psd_V2_per_Hz|psd_m2_per_Hz; found {cols}")
+    raise ValueError(
+        f"{path}: thermal file needs columns time_s + deflection_V|deflection_m "
+        f"or frequency_Hz + psd_V2_per_Hz|psd_m2_per_Hz; found {cols}"
+    )
 
 
 def thermal_k(msq_m2, temperature, lever_shape="rectangular"):

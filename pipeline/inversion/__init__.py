@@ -21,6 +21,7 @@ Modules:
   ``load_inversion``;
 * ``stage``: :func:`~pipeline.inversion.stage.run_inversion`, the command-line stage.
 """
+
 from pipeline.inversion.shape import UNUSABLE_FIT_FLAGS, clip_n  # the interval policy, used by pipeline.synth
 
 __all__ = ["UNUSABLE_FIT_FLAGS", "clip_n"]

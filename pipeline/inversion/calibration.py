@@ -5,6 +5,7 @@
   (:func:`implausible_forces`);
 * a contact-slope InvOLS includes the tip's own indentation (:func:`correct_contact_compliance`).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -36,9 +37,11 @@ def implausible_forces(F_p: dict, factor: float = 10.0) -> list:
             continue
         ratio = F / float(np.median(others))
         if ratio > factor or ratio < 1.0 / factor:
-            notes.append(f"interval {nm}: its mean pull-off {F * 1e9:.4g} nN is {ratio:.3g} x the median of the tip's other "
-                         f"intervals ({np.median(others) * 1e9:.4g} nN): check its deflection unit and calibration "
-                         "(force_curves.deflection_unit, the InvOLS source)")
+            notes.append(
+                f"interval {nm}: its mean pull-off {F * 1e9:.4g} nN is {ratio:.3g} x the median of the tip's other "
+                f"intervals ({np.median(others) * 1e9:.4g} nN): check its deflection unit and calibration "
+                "(force_curves.deflection_unit, the InvOLS source)"
+            )
     return notes
 
 
@@ -53,12 +56,21 @@ def correct_contact_compliance(forces: dict, n: float, Q: float, E_star: float):
     if forces.get("invols_method") != "contact" or forces.get("invols_shared", True):
         return forces, 1.0
     F_adh = forces["F_p_mean"]  # DMT: the adhesion outside the contact adds to the load on either segment
-    c = contact_compliance_factor(forces["k"], forces.get("contact_fit_deflection", (np.nan, np.nan)), F_adh, n, Q, E_star)
+    c = contact_compliance_factor(
+        forces["k"], forces.get("contact_fit_deflection", (np.nan, np.nan)), F_adh, n, Q, E_star
+    )
     if c == 1.0:
         return forces, 1.0
     inv = forces["invols"] / c
     u_inv = float(np.hypot(np.nan_to_num(forces["u_invols"]) / c, 0.5 * (c - 1.0) * inv))
-    out = {**forces, "F_p_mean": forces["F_p_mean"] / c, "F_p_sem": forces["F_p_sem"] / c, "F_p_std": forces["F_p_std"] / c,
-           "F_p_curves": np.asarray(forces["F_p_curves"]) / c, "invols": inv, "u_invols": u_inv,
-           "contact_compliance_factor": c}
+    out = {
+        **forces,
+        "F_p_mean": forces["F_p_mean"] / c,
+        "F_p_sem": forces["F_p_sem"] / c,
+        "F_p_std": forces["F_p_std"] / c,
+        "F_p_curves": np.asarray(forces["F_p_curves"]) / c,
+        "invols": inv,
+        "u_invols": u_inv,
+        "contact_compliance_factor": c,
+    }
     return out, c

@@ -1,4 +1,5 @@
 """The adhesion-range grid of the inversion: the Monte-Carlo subset of it and interpolation in ln h."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -14,6 +14,7 @@ n = 2 maugis_lambda).  Root attributes: tip, solver_mode, laws, mc_samples, mc_h
 E_star, u_E_star, exact, interval_order, the sampling rules, n_policy, conventions and
 calibration_notes.
 """
+
 from __future__ import annotations
 
 import h5py
@@ -36,13 +37,27 @@ PERCENTILES = (16.0, 50.0, 84.0)
 FP_SAMPLING = "Student t (dof = n_curves - 1; normal if < 3 curves) around F_p_mean with F_p_sem, truncated > 0"
 __all__ = ["load_fit", "write_inversion_h5", "load_inversion"]
 
-SYSTEMATIC = ("k and E* drawn once per sample, shared by all intervals; InvOLS per interval (its own draw) "
-              "unless stage 3 marks it shared by the tip")
+SYSTEMATIC = (
+    "k and E* drawn once per sample, shared by all intervals; InvOLS per interval (its own draw) "
+    "unless stage 3 marks it shared by the tip"
+)
 
 
 # ---------------------------------------------------------------------- the inversion file
-def write_inversion_h5(out_h5, *, settings: dict, h, mc_idx, cal: dict, cal_notes: list, systematic: dict,
-                       intervals: list, fits: dict, forces: dict, results: dict) -> None:
+def write_inversion_h5(
+    out_h5,
+    *,
+    settings: dict,
+    h,
+    mc_idx,
+    cal: dict,
+    cal_notes: list,
+    systematic: dict,
+    intervals: list,
+    fits: dict,
+    forces: dict,
+    results: dict,
+) -> None:
     """Write the inversion file (module doc).  ``settings``: tip, solver_mode, laws, mc_samples,
     seed, E_star, u_E_star, exact; ``results``: per interval (run_inversion) n_used, ln_Q_used,
     n_flag, notes, shape_model, draws and per law the curves of ``solve.law_curves``."""
@@ -50,10 +65,23 @@ def write_inversion_h5(out_h5, *, settings: dict, h, mc_idx, cal: dict, cal_note
     names = [str(iv["name"]) for iv in intervals]
     st = settings
     with atomic_h5(
-        out_h5, stage="inversion", tip=st["tip"], solver_mode=st["solver_mode"], laws=list(st["laws"]),
-        mc_samples=st["mc_samples"], mc_h_points=int(hm.size), seed=int(st["seed"]), E_star=float(st["E_star"]),
-        u_E_star=float(st["u_E_star"] or 0.0), exact=bool(st["exact"]), interval_order=names, fp_sampling=FP_SAMPLING,
-        systematic=SYSTEMATIC, n_policy=N_POLICY, conventions=CONVENTIONS, calibration_notes=cal_notes,
+        out_h5,
+        stage="inversion",
+        tip=st["tip"],
+        solver_mode=st["solver_mode"],
+        laws=list(st["laws"]),
+        mc_samples=st["mc_samples"],
+        mc_h_points=int(hm.size),
+        seed=int(st["seed"]),
+        E_star=float(st["E_star"]),
+        u_E_star=float(st["u_E_star"] or 0.0),
+        exact=bool(st["exact"]),
+        interval_order=names,
+        fp_sampling=FP_SAMPLING,
+        systematic=SYSTEMATIC,
+        n_policy=N_POLICY,
+        conventions=CONVENTIONS,
+        calibration_notes=cal_notes,
     ) as f:
         write_dataset(f, "h_grid", h, "m", "adhesion range grid")
         write_dataset(f, "h_grid_mc", hm, "m", "subset of h_grid on which the MC samples are evaluated")
@@ -63,8 +91,16 @@ def write_inversion_h5(out_h5, *, settings: dict, h, mc_idx, cal: dict, cal_note
         for iv in intervals:
             nm = str(iv["name"])
             fit, fo, res = fits[nm], forces[nm], results[nm]
-            g = create_group(gi, nm, scans=int(iv.get("scans", -1)), reference=bool(iv.get("reference", False)),
-                             n_flag=res["n_flag"], fit_flags=fit["flags"], notes=res["notes"], shape_model=res["shape_model"])
+            g = create_group(
+                gi,
+                nm,
+                scans=int(iv.get("scans", -1)),
+                reference=bool(iv.get("reference", False)),
+                n_flag=res["n_flag"],
+                fit_flags=fit["flags"],
+                notes=res["notes"],
+                shape_model=res["shape_model"],
+            )
             _write_interval_inputs(g, fit, fo, res)
             _write_draws(create_group(g, "draws"), res["draws"])
             for law, lr in res["laws"].items():
@@ -73,8 +109,12 @@ def write_inversion_h5(out_h5, *, settings: dict, h, mc_idx, cal: dict, cal_note
 
 def _write_systematic(f, sysd: dict, cal: dict) -> None:
     g = create_group(f, "systematic")
-    source = "u_F_p_calibration_rel of stage 3" if np.isfinite(cal.get("u_cal_rel", np.nan)) else "k and InvOLS independent"
-    write_dataset(g, "cal_factor", sysd["cal_factor"], "1", "(k InvOLS)/(k0 InvOLS0) per MC sample (shared)", source=source)
+    source = (
+        "u_F_p_calibration_rel of stage 3" if np.isfinite(cal.get("u_cal_rel", np.nan)) else "k and InvOLS independent"
+    )
+    write_dataset(
+        g, "cal_factor", sysd["cal_factor"], "1", "(k InvOLS)/(k0 InvOLS0) per MC sample (shared)", source=source
+    )
     write_dataset(g, "k_factor", sysd["k_factor"], "1", "k/k0 per MC sample (shared)")
     write_dataset(g, "invols_factor", sysd["invols_factor"], "1", "InvOLS/InvOLS0 per MC sample (shared)")
     write_dataset(g, "E_star", sysd["E_star"], "Pa", "E* per MC sample (shared)")
@@ -105,8 +145,13 @@ def _write_interval_inputs(g, fit: dict, fo: dict, res: dict) -> None:
     write_dataset(g, "invols_contact", fo["invols_contact"], "m/V", "InvOLS from the interval's own contact slopes")
     write_dataset(g, "u_invols_contact", fo["u_invols_contact"], "m/V", "its uncertainty")
     write_dataset(g, "invols_check", fo["invols_check"], "1", "'' or what disagrees with the contact slope")
-    write_dataset(g, "contact_compliance_factor", fo.get("contact_compliance_factor", 1.0), "1",
-                  "contact-slope InvOLS and F_p divided by this (the tip's finite contact stiffness; 1: not applied)")
+    write_dataset(
+        g,
+        "contact_compliance_factor",
+        fo.get("contact_compliance_factor", 1.0),
+        "1",
+        "contact-slope InvOLS and F_p divided by this (the tip's finite contact stiffness; 1: not applied)",
+    )
 
 
 def _write_draws(gs, dr: dict) -> None:
@@ -121,17 +166,34 @@ def _write_draws(gs, dr: dict) -> None:
 def _write_law(gl, law: str, lr: dict, h, hm) -> None:
     w_s = lr["samples"]
     write_dataset(gl, "W_A", lr["W_A"], "J/m^2", "W_A(h) from the best estimates")
-    write_dataset(gl, "W_A_samples", w_s.astype(np.float32), "J/m^2",
-                  "Monte-Carlo samples of W_A on h_grid_mc, shape (sample, h_mc); "
-                  "interpolate linearly in (ln h, ln W_A) for the full grid")
+    write_dataset(
+        gl,
+        "W_A_samples",
+        w_s.astype(np.float32),
+        "J/m^2",
+        "Monte-Carlo samples of W_A on h_grid_mc, shape (sample, h_mc); "
+        "interpolate linearly in (ln h, ln W_A) for the full grid",
+    )
     valid_frac = interp_loglog(hm, np.isfinite(w_s).mean(axis=0), h, log_y=False)
     for p, row in zip(PERCENTILES, sample_percentiles(w_s, PERCENTILES)):
-        write_dataset(gl, f"W_A_p{int(p)}", interp_loglog(hm, row, h), "J/m^2", f"{p:g}th percentile of the MC samples (on h_grid)")
+        write_dataset(
+            gl,
+            f"W_A_p{int(p)}",
+            interp_loglog(hm, row, h),
+            "J/m^2",
+            f"{p:g}th percentile of the MC samples (on h_grid)",
+        )
     write_dataset(gl, "valid_fraction", valid_frac, "1", "fraction of MC samples with a finite W_A")
     full = full_model_name(law)
     used = np.where(lr["elastic_used"], full, "rigid").astype(object)
     write_dataset(gl, "model_used", used, "1", "model used for the central W_A per h (rigid, mdn or elastic)")
-    write_dataset(gl, f"{full}_fraction", lr["elastic_fraction"], "1", f"fraction of MC samples solved with the full model ({full})")
+    write_dataset(
+        gl,
+        f"{full}_fraction",
+        lr["elastic_fraction"],
+        "1",
+        f"fraction of MC samples solved with the full model ({full})",
+    )
     if law == "dugdale":
         write_dataset(gl, "Lambda", lr["Lambda"], "1", "transition parameter at the central W_A(h)")
         write_dataset(gl, "Lambda_boundary", lr["Lambda_boundary"], "1", "Eq. 13 boundary at n_used")
@@ -168,5 +230,7 @@ def _read_interval(g, inv: dict) -> dict:
     for law in inv["laws"]:
         gl = g[law]
         d["laws"][law] = {k: read_dataset(gl, k)[0] for k in gl}
-        d["laws"][law]["W_A_samples"] = interp_loglog(inv["h_mc"], np.asarray(d["laws"][law]["W_A_samples"], dtype=float), inv["h"])
+        d["laws"][law]["W_A_samples"] = interp_loglog(
+            inv["h_mc"], np.asarray(d["laws"][law]["W_A_samples"], dtype=float), inv["h"]
+        )
     return d

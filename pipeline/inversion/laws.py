@@ -4,6 +4,7 @@ The L-J law is tied to Dugdale by z0 = h / 0.974 (Eq. 14 with equal peak stress 
 Sec. 4.3; ``pipeline.mechanics.rigid.LJ_H_OVER_Z0``): its h column is the Dugdale-equivalent h.
 For Tri2, h is the separation of the peak stress; the full range is 2h.
 """
+
 from __future__ import annotations
 
 LAWS = ("dugdale", "lj", "tri1", "tri2")

@@ -14,6 +14,7 @@ The streams: ``SeedSequence([seed, crc32(tip)])`` spawns one child for the share
 interval for its own draws and one per interval for its InvOLS, so a tip's result does not
 depend on the other tips or on the order of the laws.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -55,7 +56,7 @@ def draw_mean(rng, mean, sem, n_curves, size):
 def seed_streams(seed: int, tip: str, n_intervals: int):
     """(shared, per-interval, per-interval InvOLS) seed sequences of a tip (module doc)."""
     children = np.random.SeedSequence([int(seed), zlib.crc32(tip.encode())]).spawn(1 + 2 * n_intervals)
-    return children[0], children[1:1 + n_intervals], children[1 + n_intervals:]
+    return children[0], children[1 : 1 + n_intervals], children[1 + n_intervals :]
 
 
 def draw_systematic(ss, cal, E_star, u_E_star, size):
@@ -84,7 +85,11 @@ def interval_calibration_factor(ss, sysd, forces, size):
     if forces["invols_shared"]:
         return sysd["cal_factor"]
     inv, u_inv = forces["invols"], np.nan_to_num(forces["u_invols"])
-    fi = truncnormal(np.random.default_rng(ss), 1.0, u_inv / inv, size) if np.isfinite(inv) and inv > 0 else np.ones(size)
+    fi = (
+        truncnormal(np.random.default_rng(ss), 1.0, u_inv / inv, size)
+        if np.isfinite(inv) and inv > 0
+        else np.ones(size)
+    )
     return sysd["k_factor"] * fi
 
 

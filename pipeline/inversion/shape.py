@@ -18,6 +18,7 @@ below 2.  Policy (``n_policy`` attribute in the output):
 A reference interval whose n is consistent with 2 is inverted as the paraboloid of its n = 2 fit
 (:func:`shape_for_inversion`); a fit that stage 2 flagged as untrustworthy is not used.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -36,8 +37,9 @@ REFERENCE_N_SIGMA = 2.0
 # sigma_n above which the image hardly constrains the shape (said in the notes).
 SHAPE_POORLY_DEFINED_SIGMA_N = 0.2
 # Stage-2 fit flags that make an interval unusable (its fit is not a trustworthy tip shape).
-UNUSABLE_FIT_FLAGS = frozenset({"n_below_1.5", "not_converged", "n_at_bound", "residual_above_pixel", "few_points",
-                                "edge_turns_back"})
+UNUSABLE_FIT_FLAGS = frozenset(
+    {"n_below_1.5", "not_converged", "n_at_bound", "residual_above_pixel", "few_points", "edge_turns_back"}
+)
 USABLE_N_FLAGS = ("ok", "n_clipped_to_2")
 
 
@@ -57,16 +59,27 @@ def shape_for_inversion(fit: dict, reference: bool):
     consistent = np.isfinite(n) and abs(n - 2.0) <= REFERENCE_N_SIGMA * max(u, 0.0)
     below_tol = np.isfinite(n) and N_MIN - max(3.0 * u, N_BELOW_2_TOL) <= n < N_MIN
     usable_para = para is not None and not (set(para["flags"]) & UNUSABLE_FIT_FLAGS)
-    vague = f" The image hardly constrains the shape (sigma_n = {u:.2f}): W_A rests on the paraboloid assumption." \
-        if u > SHAPE_POORLY_DEFINED_SIGMA_N else ""
+    vague = (
+        f" The image hardly constrains the shape (sigma_n = {u:.2f}): W_A rests on the paraboloid assumption."
+        if u > SHAPE_POORLY_DEFINED_SIGMA_N
+        else ""
+    )
     if usable_para and ((reference and consistent) or below_tol):
         u_r = para["R"] * float(np.sqrt(max(para["cov_n_lnQ"][1, 1], 0.0)))
-        note = (f"fitted n = {n:.3f} +- {u:.3f} is consistent with a paraboloid: used as one, R = {para['R'] * 1e9:.3g} "
-                f"+- {u_r * 1e9:.2g} nm from the n = 2 fit of the same profile.{vague}")
+        note = (
+            f"fitted n = {n:.3f} +- {u:.3f} is consistent with a paraboloid: used as one, R = {para['R'] * 1e9:.3g} "
+            f"+- {u_r * 1e9:.2g} nm from the n = 2 fit of the same profile.{vague}"
+        )
         return {**fit, **para, "S": fit["S"]}, "paraboloid (n = 2 fit)", note
     if reference and np.isfinite(n) and not consistent:
-        return fit, "power law", (f"reference interval fitted n = {n:.3f} +- {u:.3f}, {abs(n - 2.0) / max(u, 1e-12):.1f} sigma "
-                                  "from a paraboloid: the method's reference assumption does not hold; used with its fitted shape")
+        return (
+            fit,
+            "power law",
+            (
+                f"reference interval fitted n = {n:.3f} +- {u:.3f}, {abs(n - 2.0) / max(u, 1e-12):.1f} sigma "
+                "from a paraboloid: the method's reference assumption does not hold; used with its fitted shape"
+            ),
+        )
     return fit, "power law", ""
 
 

@@ -8,6 +8,7 @@ pipeline.mechanics.rigid_boundary for the others; else the full model).  Every l
 which model made each W_A (``elastic_used``; in the file ``model_used`` and the fraction of
 Monte-Carlo samples solved with the full model).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -115,7 +116,9 @@ def law_curves(law, central, samples, h, hm, mode, exact=False) -> dict:
     w_s = solve_w(samples["F"], samples["n"], samples["Q"], samples["E_star"], hm[None, :], law, mode, exact)
     out = {"W_A": w_c, "samples": w_s, "elastic_used": uses_elastic_model(F, n, q, e_star, h, mode, law)}
     if mode == "auto":
-        used_s = uses_elastic_model(samples["F"], samples["n"], samples["Q"], samples["E_star"], hm[None, :], "auto", law)
+        used_s = uses_elastic_model(
+            samples["F"], samples["n"], samples["Q"], samples["E_star"], hm[None, :], "auto", law
+        )
         fin = np.isfinite(w_s)
         cnt = fin.sum(axis=0)
         frac = (used_s & fin).sum(axis=0) / np.maximum(cnt, 1)

@@ -1,5 +1,6 @@
 """Stage 4 entry point: the fits and forces of a tip's intervals -> W_A(h) per interval and
 traction law with Monte-Carlo samples (``inversion.h5``, layout in ``pipeline.inversion.io``)."""
+
 from __future__ import annotations
 
 import logging
@@ -21,14 +22,29 @@ log = logging.getLogger(__name__)
 
 def _interval_result(shape, dr, notes, solved_laws) -> dict:
     """One interval's result as ``write_inversion_h5`` takes it."""
-    return {"n_used": shape.n, "ln_Q_used": shape.ln_Q, "n_flag": shape.n_flag, "draws": dr, "notes": notes,
-            "shape_model": shape.model, "laws": solved_laws}
+    return {
+        "n_used": shape.n,
+        "ln_Q_used": shape.ln_Q,
+        "n_flag": shape.n_flag,
+        "draws": dr,
+        "notes": notes,
+        "shape_model": shape.model,
+        "laws": solved_laws,
+    }
 
 
 def _settings(tip, solver_mode, laws, n_samples, seed, E_star, u_E_star, exact) -> dict:
     """The run's settings as ``write_inversion_h5`` stores them."""
-    return {"tip": tip, "solver_mode": solver_mode, "laws": laws, "mc_samples": n_samples, "seed": seed,
-            "E_star": E_star, "u_E_star": u_E_star, "exact": exact}
+    return {
+        "tip": tip,
+        "solver_mode": solver_mode,
+        "laws": laws,
+        "mc_samples": n_samples,
+        "seed": seed,
+        "E_star": E_star,
+        "u_E_star": u_E_star,
+        "exact": exact,
+    }
 
 
 def run_inversion(
@@ -80,12 +96,31 @@ def run_inversion(
         _log_interval(tip, nm, shape, forces[nm], compliance, notes)
         solved = _solve_laws(laws, shape, forces[nm], dr, sysd, E_star, h, h[mc_idx], solver_mode, exact)
         results[nm] = _interval_result(shape, dr, notes, solved)
-        log.info("%s: interval %d/%d (%s) solved for %d laws x %d Monte-Carlo samples, %.1f s so far",
-                 tip, i + 1, len(names), nm, len(laws), n_samples, time.perf_counter() - t0)
+        log.info(
+            "%s: interval %d/%d (%s) solved for %d laws x %d Monte-Carlo samples, %.1f s so far",
+            tip,
+            i + 1,
+            len(names),
+            nm,
+            len(laws),
+            n_samples,
+            time.perf_counter() - t0,
+        )
 
     settings = _settings(tip, solver_mode, laws, n_samples, seed, E_star, u_E_star, exact)
-    write_inversion_h5(out_h5, settings=settings, h=h, mc_idx=mc_idx, cal=cal, cal_notes=cal_notes, systematic=sysd,
-                       intervals=intervals, fits=fits, forces=forces, results=results)
+    write_inversion_h5(
+        out_h5,
+        settings=settings,
+        h=h,
+        mc_idx=mc_idx,
+        cal=cal,
+        cal_notes=cal_notes,
+        systematic=sysd,
+        intervals=intervals,
+        fits=fits,
+        forces=forces,
+        results=results,
+    )
     return {"seconds": time.perf_counter() - t0, "intervals": names, "laws": laws}
 
 
@@ -122,23 +157,35 @@ def _solve_laws(laws, shape: IntervalShape, fo: dict, dr: dict, sysd: dict, E_st
     """Every law's W_A(h) of one interval: the central curve from the best estimates, the samples
     from the draws (F_p times the calibration factor, the clipped (n, Q), the shared E*)."""
     central = {"F": fo["F_p_mean"], "n": shape.n, "Q": shape.Q, "E_star": E_star, "R": shape.fit["R"]}
-    samples = {"F": (dr["F_p_mean"] * dr["cal_factor"])[:, None], "n": dr["n"][:, None], "Q": np.exp(dr["ln_Q"])[:, None],
-               "E_star": sysd["E_star"][:, None]}
+    samples = {
+        "F": (dr["F_p_mean"] * dr["cal_factor"])[:, None],
+        "n": dr["n"][:, None],
+        "Q": np.exp(dr["ln_Q"])[:, None],
+        "E_star": sysd["E_star"][:, None],
+    }
     return {law: law_curves(law, central, samples, h, hm, solver_mode, exact) for law in laws}
 
 
 def _interval_notes(nm: str, shape: IntervalShape, fo: dict, dr: dict, compliance: float, fp_notes: list) -> list:
     """What a reader of this interval's result must know, in words."""
-    notes = list(fo["warnings"]) + ([shape.note] if shape.note else []) + [x for x in fp_notes if x.startswith(f"interval {nm}:")]
+    notes = (
+        list(fo["warnings"])
+        + ([shape.note] if shape.note else [])
+        + [x for x in fp_notes if x.startswith(f"interval {nm}:")]
+    )
     if compliance > 1.001:
-        notes.append(f"InvOLS from the contact slopes corrected for the tip's contact stiffness (Sneddon, DMT load): "
-                     f"F_p divided by {compliance:.4f}, half the correction added to its uncertainty")
+        notes.append(
+            f"InvOLS from the contact slopes corrected for the tip's contact stiffness (Sneddon, DMT load): "
+            f"F_p divided by {compliance:.4f}, half the correction added to its uncertainty"
+        )
     if not (np.isfinite(fo["F_p_sem"]) and fo["F_p_sem"] > 0):
         notes.append("no statistical uncertainty of F_p (fewer than 2 curves): only calibration/fit/E* propagated")
     if shape.n_flag == "n_clipped_to_2":
         notes.append(f"fitted n = {shape.fit['n']:.4f} < 2 clipped to 2 keeping R")
     if shape.n_flag == "fit_flagged":
-        notes.append(f"power-law fit flagged {', '.join(shape.bad_fit_flags)}: interval not used (check its profile figure)")
+        notes.append(
+            f"power-law fit flagged {', '.join(shape.bad_fit_flags)}: interval not used (check its profile figure)"
+        )
     if np.any(dr["n_clipped"]):
         notes.append(f"{np.mean(dr['n_clipped']):.0%} of MC draws had n < 2 and were clipped to 2 keeping R")
     return notes
@@ -146,5 +193,14 @@ def _interval_notes(nm: str, shape: IntervalShape, fo: dict, dr: dict, complianc
 
 def _log_interval(tip: str, nm: str, shape: IntervalShape, fo: dict, compliance: float, notes: list) -> None:
     fit = shape.fit
-    log.info("%s %s: n = %.3f +- %.3f (%s), F_p = %.4g nN%s; %s", tip, nm, fit["n"], fit["u_n"], shape.n_flag, fo["F_p_mean"] * 1e9,
-             f" (contact compliance {compliance:.4f} applied)" if compliance > 1 else "", "; ".join(notes) or "no notes")
+    log.info(
+        "%s %s: n = %.3f +- %.3f (%s), F_p = %.4g nN%s; %s",
+        tip,
+        nm,
+        fit["n"],
+        fit["u_n"],
+        shape.n_flag,
+        fo["F_p_mean"] * 1e9,
+        f" (contact compliance {compliance:.4f} applied)" if compliance > 1 else "",
+        "; ".join(notes) or "no notes",
+    )

@@ -121,5 +121,11 @@ def mdn_branch_si(n, Q, E_star, W, h, num=400):
     lam = float(transition_parameter(n, Q, E_star, W, h))
     b = mdn_branch(n, lam, num=num)
     n = float(n)
-    la, ld, lp = log_length_scale(n, Q, E_star, W), log_displacement_scale(n, Q, E_star, W), log_force_scale(n, Q, E_star, W)
-    return MDNBranchSI(b.a * np.exp(la), b.delta * np.exp(ld), b.P * np.exp(lp), b.m, b.pulloff * float(np.exp(lp)), b.i_pulloff)
+    la, ld, lp = (
+        log_length_scale(n, Q, E_star, W),
+        log_displacement_scale(n, Q, E_star, W),
+        log_force_scale(n, Q, E_star, W),
+    )
+    return MDNBranchSI(
+        b.a * np.exp(la), b.delta * np.exp(ld), b.P * np.exp(lp), b.m, b.pulloff * float(np.exp(lp)), b.i_pulloff
+    )

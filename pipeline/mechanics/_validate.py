@@ -29,8 +29,7 @@ def exponent(n):
     arr = positive("n", n)
     if arr.size and np.any(arr < N_MIN * (1 - _REL)) or np.any(arr > N_MAX * (1 + _REL)):
         raise ValueError(
-            f"n must lie in the supported domain [{N_MIN:g}, {N_MAX:g}] "
-            f"(got range [{arr.min():.6g}, {arr.max():.6g}])"
+            f"n must lie in the supported domain [{N_MIN:g}, {N_MAX:g}] (got range [{arr.min():.6g}, {arr.max():.6g}])"
         )
     return np.clip(arr, N_MIN, N_MAX)
 

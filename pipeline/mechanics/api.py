@@ -37,8 +37,16 @@ from .rigid import rigid_pulloff_nd_raw, rigid_pulloff_ratio
 from .scaling import _log_lambda, log_force_scale, log_g_group, work_from_lambda
 from .tables import log_pulloff_fast, pulloff_mdn
 
-__all__ = ["pulloff_nd", "pulloff_force", "work_of_adhesion", "model_used", "lambda_from_g",
-           "pulloff_with_model", "work_of_adhesion_with_model", "rigid_boundary"]
+__all__ = [
+    "pulloff_nd",
+    "pulloff_force",
+    "work_of_adhesion",
+    "model_used",
+    "lambda_from_g",
+    "pulloff_with_model",
+    "work_of_adhesion_with_model",
+    "rigid_boundary",
+]
 
 #: Lambda above which the direct elastic solve is not run (exact=True): every law is within
 #: 0.1 % of M-D-n there (JKR limit) and the table's end value is used.

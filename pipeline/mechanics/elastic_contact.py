@@ -182,7 +182,9 @@ class _System:
         """S_j = int_cell T(y) x dx and its tridiagonal derivatives dS_j/dy_(j-1, j, j+1)."""
         N = self.N
         ym = 0.5 * (y[:-1] + y[1:])
-        I, da, db = self.law.segment_moments(self.ra, self.len, np.concatenate([y[:-1], ym]), np.concatenate([ym, y[1:]]))
+        I, da, db = self.law.segment_moments(
+            self.ra, self.len, np.concatenate([y[:-1], ym]), np.concatenate([ym, y[1:]])
+        )
         m = N - 1
         S = np.zeros(N)
         S[:-1] += I[:m]
@@ -408,7 +410,7 @@ class _PathSolver:
         r = 0.0
         if prev is not None and prev.psi != guess.psi:
             r = float(np.clip((psi - guess.psi) / (guess.psi - prev.psi), 0.0, 2.0))
-        secant = (r > 0 and prev.knots().size == guess.knots().size and (guess.a > 0) == (prev.a > 0) == (a > 0))
+        secant = r > 0 and prev.knots().size == guess.knots().size and (guess.a > 0) == (prev.a > 0) == (a > 0)
         feats = self._predicted_knots(psi, guess, prev, r, secant)
         base = guess
         for _ in range(remesh):
@@ -690,10 +692,18 @@ def elastic_pulloff(n, Lambda, law="dugdale", level=2.0, estimate_error=False):
         except _NoConvergenceError:
             continue
     return ElasticPulloff(
-        law=law.name, n=n, Lambda=lam, kappa=float(kappa_from_lambda(n, lam)), ratio=float(best.f),
-        pulloff_nd=float(best.f * n ** (2.0 / n) * lam ** ((n - 2.0) / n)), error_estimate=float(err),
-        contact_radius=best.contact_radius(), apex_gap=max(float(best.y[0]), 0.0), approach=float(best.D),
-        nodes=int(best.x.size), solves=solver.evaluations,
+        law=law.name,
+        n=n,
+        Lambda=lam,
+        kappa=float(kappa_from_lambda(n, lam)),
+        ratio=float(best.f),
+        pulloff_nd=float(best.f * n ** (2.0 / n) * lam ** ((n - 2.0) / n)),
+        error_estimate=float(err),
+        contact_radius=best.contact_radius(),
+        apex_gap=max(float(best.y[0]), 0.0),
+        approach=float(best.D),
+        nodes=int(best.x.size),
+        solves=solver.evaluations,
     )
 
 

@@ -34,8 +34,16 @@ from scipy.interpolate import RectBivariateSpline
 
 from .mdn import pulloff_mdn_exact
 
-__all__ = ["TABLE_LAWS", "ELASTIC_TABLE_SPEC", "DATA_FILE", "build_elastic_table", "load_elastic_table",
-           "log_ratio_to_mdn", "lambda_boundary_law", "table_error"]
+__all__ = [
+    "TABLE_LAWS",
+    "ELASTIC_TABLE_SPEC",
+    "DATA_FILE",
+    "build_elastic_table",
+    "load_elastic_table",
+    "log_ratio_to_mdn",
+    "lambda_boundary_law",
+    "table_error",
+]
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +61,10 @@ def _key():
 def grid():
     """Node coordinates (log n, log Lambda)."""
     sp = ELASTIC_TABLE_SPEC
-    return (np.linspace(np.log(sp["n_lo"]), np.log(sp["n_hi"]), sp["n_nodes"]),
-            np.linspace(np.log(sp["lam_lo"]), np.log(sp["lam_hi"]), sp["lam_nodes"]))
+    return (
+        np.linspace(np.log(sp["n_lo"]), np.log(sp["n_hi"]), sp["n_nodes"]),
+        np.linspace(np.log(sp["lam_lo"]), np.log(sp["lam_hi"]), sp["lam_nodes"]),
+    )
 
 
 def _solve_node(args):
@@ -88,8 +98,13 @@ def compute_law(law, processes=1):
 def build_elastic_table(path=DATA_FILE, processes=1):
     """Compute every law's table and write it (atomically) to ``path``; returns the arrays."""
     s, x = grid()
-    out = {"s": s, "x": x, "key": np.array(_key()), "spec": np.array(json.dumps(ELASTIC_TABLE_SPEC)),
-           "solver_version": np.array(SOLVER_VERSION)}
+    out = {
+        "s": s,
+        "x": x,
+        "key": np.array(_key()),
+        "spec": np.array(json.dumps(ELASTIC_TABLE_SPEC)),
+        "solver_version": np.array(SOLVER_VERSION),
+    }
     t0 = time.perf_counter()
     for law in TABLE_LAWS:
         out[f"y_{law}"] = compute_law(law, processes)

@@ -125,9 +125,7 @@ def mdn_state(n, lam, t, derivative=True):
     an_alpha = np.exp(la + n * y)
     dy_dt = -(at_an + bt_a) / (n * an_alpha + np.exp(lb + y))
     dc3dt = 2.0 * m * e * asec + 2.0 * m * np.sqrt(e / (2.0 + e))
-    dPdt = (b_n1 / np.pi) * (n + 1.0) * a ** (n + 1.0) * dy_dt - 2.0 / np.pi * lam * a * a * (
-        2.0 * c3 * dy_dt + dc3dt
-    )
+    dPdt = (b_n1 / np.pi) * (n + 1.0) * a ** (n + 1.0) * dy_dt - 2.0 / np.pi * lam * a * a * (2.0 * c3 * dy_dt + dc3dt)
     return _State(a, delta, P, m, dPdt)
 
 
@@ -228,9 +226,7 @@ def mdn_branch(n, lam, num=400, a_factor=2.5, t_tail=12.0):
     over = np.nonzero(a_probe >= a_factor * a_star)[0]
     t_lo = probe[over[0]] if over.size else probe[-1]
     n_left = max(2, int(round(num * (t_star - t_lo) / (t_star - t_lo + t_tail))))
-    t = np.concatenate(
-        [np.linspace(t_lo, t_star, n_left), np.linspace(t_star, t_star + t_tail, num - n_left + 1)[1:]]
-    )
+    t = np.concatenate([np.linspace(t_lo, t_star, n_left), np.linspace(t_star, t_star + t_tail, num - n_left + 1)[1:]])
     st = mdn_state(n, lam, t, derivative=False)
     return MDNBranch(t, st.m, st.a, st.delta, st.P, n_left - 1, float(po[0]))
 

@@ -80,12 +80,16 @@ def rigid_force_curve(n, u, potential="dugdale"):
     if pot == "dugdale":
         return np.clip(1.0 - u, 0.0, None) ** p
     if pot == "tri1":
-        return 4.0 / (p + 1.0) * (
-            np.clip(1.0 - u, 0.0, None) ** (p + 1.0) - 2.0 * np.clip(0.5 - u, 0.0, None) ** (p + 1.0)
+        return (
+            4.0
+            / (p + 1.0)
+            * (np.clip(1.0 - u, 0.0, None) ** (p + 1.0) - 2.0 * np.clip(0.5 - u, 0.0, None) ** (p + 1.0))
         )
     if pot == "tri2":
-        return 1.0 / (p + 1.0) * (
-            np.clip(2.0 - u, 0.0, None) ** (p + 1.0) - 2.0 * np.clip(1.0 - u, 0.0, None) ** (p + 1.0)
+        return (
+            1.0
+            / (p + 1.0)
+            * (np.clip(2.0 - u, 0.0, None) ** (p + 1.0) - 2.0 * np.clip(1.0 - u, 0.0, None) ** (p + 1.0))
         )
     b3, b9, _ = _lj_terms(p)
     return _lj_force(p, 1.0 + LJ_H_OVER_Z0 * u, b3, b9)

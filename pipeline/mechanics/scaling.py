@@ -44,9 +44,7 @@ def log_displacement_scale(n, Q, E_star, W):
 
 def log_force_scale(n, Q, E_star, W):
     """log(pi P*) so that P = P~ exp(log_force_scale) (Eq. 6)."""
-    return np.log(np.pi) + (3.0 * np.log(Q) + (n + 1.0) * np.log(W) + (n - 2.0) * np.log(E_star)) / (
-        2.0 * n - 1.0
-    )
+    return np.log(np.pi) + (3.0 * np.log(Q) + (n + 1.0) * np.log(W) + (n - 2.0) * np.log(E_star)) / (2.0 * n - 1.0)
 
 
 def _log_lambda(n, Q, E_star, W, h):

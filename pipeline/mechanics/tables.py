@@ -29,9 +29,7 @@ from .mdn import pulloff_mdn_exact
 __all__ = ["TABLE_SPEC", "build_table", "table_path", "log_pulloff_fast", "table_spline", "pulloff_mdn"]
 
 SOLVER_VERSION = "mdn-1"
-TABLE_SPEC = dict(
-    n_lo=1.8, n_hi=21.0, n_nodes=48, lam_lo=1e-7, lam_hi=1e7, x_center=1.0, x_width=4.0, x_nodes=240, k=5
-)
+TABLE_SPEC = dict(n_lo=1.8, n_hi=21.0, n_nodes=48, lam_lo=1e-7, lam_hi=1e7, x_center=1.0, x_width=4.0, x_nodes=240, k=5)
 
 
 def _key():
@@ -53,7 +51,9 @@ def grid():
     sp = TABLE_SPEC
     s = np.linspace(np.log(sp["n_lo"]), np.log(sp["n_hi"]), sp["n_nodes"])
     c, w = sp["x_center"], sp["x_width"]
-    u = np.linspace(np.arcsinh((np.log(sp["lam_lo"]) - c) / w), np.arcsinh((np.log(sp["lam_hi"]) - c) / w), sp["x_nodes"])
+    u = np.linspace(
+        np.arcsinh((np.log(sp["lam_lo"]) - c) / w), np.arcsinh((np.log(sp["lam_hi"]) - c) / w), sp["x_nodes"]
+    )
     return s, c + w * np.sinh(u)
 
 

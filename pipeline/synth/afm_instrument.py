@@ -40,6 +40,7 @@ error of the piezo, common to all curves of an instrument) plus sensor noise.
 Everything is deterministic by seed.  ``simulate_curve`` returns the recorded arrays and the
 truth; ``write_instrument_csv`` writes them in an instrument-like CSV layout.
 """
+
 from __future__ import annotations
 
 import csv
@@ -163,7 +164,9 @@ def tip_force(D, it: Interaction):
     F = np.where(D < 0, F0 + Frep, attraction(D, it))
     # numerical derivative on the attractive side (piecewise laws), exact stiffness in contact
     h = 1e-13
-    dF = np.where(D < 0, -kc, (attraction(D + h, it) - attraction(np.maximum(D - h, 0.0), it)) / (D + h - np.maximum(D - h, 0.0)))
+    dF = np.where(
+        D < 0, -kc, (attraction(D + h, it) - attraction(np.maximum(D - h, 0.0), it)) / (D + h - np.maximum(D - h, 0.0))
+    )
     return F, dF
 
 
@@ -312,10 +315,17 @@ def simulate_curve(it: Interaction, lever: Lever, inst: Instrument, *, seed=0, h
     pressed = contact & (D0 - z + d < 0)  # the Sneddon stiffness 2 E* a where the tip indents
     kc[pressed] = repulsion(-(D0 - z[pressed] + d[pressed]), it.n, it.Q, it.E_star)[1]
     th = _thermal(d.size, dt, lever, rng) * np.sqrt(k / (k + kc))
-    drift = inst.drift_rate * t + (np.cumsum(rng.standard_normal(d.size)) * inst.drift_walk * np.sqrt(dt) if inst.drift_walk else 0.0)
+    drift = inst.drift_rate * t + (
+        np.cumsum(rng.standard_normal(d.size)) * inst.drift_walk * np.sqrt(dt) if inst.drift_walk else 0.0
+    )
     sig = d_mech + th + drift
     volts = (sig + lever.alpha * sig**2) / lever.invols
-    volts = volts + inst.tilt * z + (inst.interference / lever.invols) * np.sin(2 * np.pi * z / inst.interference_period + rng.uniform(0, 2 * np.pi))
+    volts = (
+        volts
+        + inst.tilt * z
+        + (inst.interference / lever.invols)
+        * np.sin(2 * np.pi * z / inst.interference_period + rng.uniform(0, 2 * np.pi))
+    )
     volts = _lowpass(volts, inst, fi)
     idx = np.arange(0, volts.size, over)
     volts, zs, ts = volts[idx], z[idx], t[idx]
@@ -353,11 +363,25 @@ def _truth(it: Interaction, lever: Lever, inst: Instrument, br, i0, i1, jumps: i
     Dg = np.linspace(0.0, 6.0 * it.ell, 4001)
     F_max = float(-attraction(Dg, it).min())
     _, kc_trig = repulsion(-br.D[i0:i1][np.argmin(np.abs(br.d[i0:i1] - 0.5 * inst.trigger))], it.n, it.Q, it.E_star)
-    return dict(F_p=F_max, k=k, invols=lever.invols, delta_m=F_max / k, law=it.law, ell=it.ell, n=it.n, Q=it.Q,
-                E_star=it.E_star, contact_stiffness_mid=float(kc_trig),
-                contact_slope_factor=float(kc_trig / (kc_trig + k)), jumps=jumps, seed=seed, fs=inst.fs,
-                duration=duration, **{f"lever_{a}": v for a, v in asdict(lever).items()},
-                **{f"inst_{a}": v for a, v in asdict(inst).items()})
+    return dict(
+        F_p=F_max,
+        k=k,
+        invols=lever.invols,
+        delta_m=F_max / k,
+        law=it.law,
+        ell=it.ell,
+        n=it.n,
+        Q=it.Q,
+        E_star=it.E_star,
+        contact_stiffness_mid=float(kc_trig),
+        contact_slope_factor=float(kc_trig / (kc_trig + k)),
+        jumps=jumps,
+        seed=seed,
+        fs=inst.fs,
+        duration=duration,
+        **{f"lever_{a}": v for a, v in asdict(lever).items()},
+        **{f"inst_{a}": v for a, v in asdict(inst).items()},
+    )
 
 
 HEADER = ("Height (nm)", "Vertical Deflection (V)", "Segment")
@@ -374,7 +398,9 @@ def write_instrument_csv(path, curve: InstrumentCurve) -> Path:
         fh.write(f"# simulated instrument export: k={t['k']:.5g} N/m, fs={t['fs']:.5g} Hz (truth kept by the study)\n")
         w = csv.writer(fh, delimiter="\t")
         w.writerow(HEADER)
-        w.writerows(zip((f"{h * 1e9:.5f}" for h in curve.height), (f"{v:.6e}" for v in curve.deflection_V), curve.segment))
+        w.writerows(
+            zip((f"{h * 1e9:.5f}" for h in curve.height), (f"{v:.6e}" for v in curve.deflection_V), curve.segment)
+        )
     return path
 
 

@@ -17,6 +17,7 @@ factor: a wrong reference) and ``hidden_bias`` (one worn interval's forces off b
 calibration sees).  The report (``run_case``) says how far h and W_A are from the truth and
 whether the 95 % interval covers it.
 """
+
 from __future__ import annotations
 
 import tempfile
@@ -56,14 +57,25 @@ def draw_case(seed: int, kind: str = "rigid") -> Case:
     invols0 = rng.uniform(40e-9, 80e-9)
     elastic = kind == "elastic"
     case = Case(
-        seed=seed, kind=kind, n=n, R=rng.uniform(8e-9, 30e-9), S=rng.uniform(1.0, 2.0),
+        seed=seed,
+        kind=kind,
+        n=n,
+        R=rng.uniform(8e-9, 30e-9),
+        S=rng.uniform(1.0, 2.0),
         # elastic: Lambda 1.4-2.7 x the Eq. 13 boundary (the M-D-n solution needed); rigid: well below
         W_A=rng.uniform(0.3, 1.0) if elastic else rng.uniform(0.04, 0.1),
         h=rng.uniform(0.4e-9, 0.8e-9) if elastic else rng.uniform(2.5e-9, 6e-9),
         E_star=rng.uniform(30e9, 60e9) if elastic else rng.uniform(60e9, 150e9),
         # a ten times stiffer lever for the large elastic pull-offs (its deflection within the detector's +-10 V)
-        k=rng.uniform(0.5, 3.0) * (10.0 if elastic else 1.0), u_k_rel=0.05, invols=invols0 * (1.0 + drift * rng.standard_normal(m)),
-        scatter=rng.uniform(0.02, 0.05), n_curves=8, sigma_n=rng.uniform(0.03, 0.08), sigma_ln_rh=rng.uniform(0.001, 0.003), bias=np.ones(m))
+        k=rng.uniform(0.5, 3.0) * (10.0 if elastic else 1.0),
+        u_k_rel=0.05,
+        invols=invols0 * (1.0 + drift * rng.standard_normal(m)),
+        scatter=rng.uniform(0.02, 0.05),
+        n_curves=8,
+        sigma_n=rng.uniform(0.03, 0.08),
+        sigma_ln_rh=rng.uniform(0.001, 0.003),
+        bias=np.ones(m),
+    )
     if kind == "wrong_reference":
         case.bias[0] = 1.0 + rng.choice([-1.0, 1.0]) * 0.10
     elif kind == "hidden_bias":
@@ -104,9 +116,12 @@ def _instrument(case: Case, rng):
     from pipeline.synth.afm_instrument import Instrument, Lever
 
     lever = Lever(k=case.k, f0=20e3 * np.sqrt(case.k / 0.1), Q=float(rng.uniform(30, 300)))
-    inst = Instrument(lowpass=float(rng.choice([0.0, 1e3, 2e3, 3e3])), detector_noise=float(rng.uniform(0.02e-9, 0.1e-9)),
-                      interference=float(rng.uniform(0, 0.2e-9)) if rng.random() < 1 / 3 else 0.0,
-                      trigger=20e-9)
+    inst = Instrument(
+        lowpass=float(rng.choice([0.0, 1e3, 2e3, 3e3])),
+        detector_noise=float(rng.uniform(0.02e-9, 0.1e-9)),
+        interference=float(rng.uniform(0, 0.2e-9)) if rng.random() < 1 / 3 else 0.0,
+        trigger=20e-9,
+    )
     return lever, inst
 
 
@@ -119,9 +134,16 @@ def _write_curves(case: Case, i, n, Fi, folder, rng, generator, lever, inst):
         paths = []
         for j, Fj in enumerate(F_curves):
             # trigger deflection: 20 nm, or a third of the adhesive jump where that is larger
-            c = make_force_curve(float(Fj), case.k, float(case.invols[i]), seed=int(rng.integers(2**31)),
-                                 offset_V=float(rng.normal(0, 0.05)), tilt=float(rng.normal(0, 2e5)), noise=0.1e-9,
-                                 setpoint_deflection=max(20e-9, Fj / case.k / 3.0))
+            c = make_force_curve(
+                float(Fj),
+                case.k,
+                float(case.invols[i]),
+                seed=int(rng.integers(2**31)),
+                offset_V=float(rng.normal(0, 0.05)),
+                tilt=float(rng.normal(0, 2e5)),
+                noise=0.1e-9,
+                setpoint_deflection=max(20e-9, Fj / case.k / 3.0),
+            )
             paths.append(write_curve_csv(folder / f"c{j}.csv", c))
         return paths, F_curves, {}
     from dataclasses import replace
@@ -132,10 +154,15 @@ def _write_curves(case: Case, i, n, Fi, folder, rng, generator, lever, inst):
     paths, truth = [], []
     lv = replace(lever, invols=float(case.invols[i]))
     for j, Fj in enumerate(F_curves):
-        ins = replace(inst, offset_V=float(rng.normal(0, 0.1)), tilt=float(rng.normal(0, 2e5)),
-                      trigger=max(20e-9, float(Fj) / case.k / 3.0))
-        c = simulate_curve(Interaction(float(Fj), "dugdale", case.h, float(n), q, case.E_star), lv, ins,
-                           seed=int(rng.integers(2**31)))
+        ins = replace(
+            inst,
+            offset_V=float(rng.normal(0, 0.1)),
+            tilt=float(rng.normal(0, 2e5)),
+            trigger=max(20e-9, float(Fj) / case.k / 3.0),
+        )
+        c = simulate_curve(
+            Interaction(float(Fj), "dugdale", case.h, float(n), q, case.E_star), lv, ins, seed=int(rng.integers(2**31))
+        )
         paths.append(write_instrument_csv(folder / f"c{j}.tsv", c))
         truth.append(c.truth["F_p"])
     return paths, np.array(truth), dict(READER)
@@ -155,8 +182,16 @@ def _weighted_truth(forces_h5, F_curves) -> float:
         return float(np.sum(f["curves/weight"][()] * F_curves))
 
 
-def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_grid=None, oracle_invols=False,
-             generator="instrument") -> dict:
+def run_case(
+    case: Case,
+    workdir=None,
+    *,
+    mc_samples=1000,
+    cantilever=None,
+    h_grid=None,
+    oracle_invols=False,
+    generator="instrument",
+) -> dict:
     """Write the case's curves and fits, run stages 3-5 (Dugdale law), compare with the truth.
 
     ``generator``: ``instrument`` (default; ``pipeline.synth.afm_instrument``, which shares no
@@ -186,19 +221,41 @@ def run_case(case: Case, workdir=None, *, mc_samples=1000, cantilever=None, h_gr
         nm = f"i{i}"
         paths, F_curves, reader = _write_curves(case, i, n, Fi, root / "curves" / nm, rng, generator, lever, inst)
         forces[nm] = str(root / "forces" / f"{nm}.h5")
-        icfg = {"deflection_sensitivity": float(case.invols[i]), "deflection_sensitivity_uncertainty": 0.0} if oracle_invols else {}
-        run_forces(paths, forces[nm], root / "forces" / f"{nm}.png", cantilever=cant, reader=reader, tip=f"case{case.seed}",
-                   interval=nm, interval_cfg=icfg)
+        icfg = (
+            {"deflection_sensitivity": float(case.invols[i]), "deflection_sensitivity_uncertainty": 0.0}
+            if oracle_invols
+            else {}
+        )
+        run_forces(
+            paths,
+            forces[nm],
+            root / "forces" / f"{nm}.png",
+            cantilever=cant,
+            reader=reader,
+            tip=f"case{case.seed}",
+            interval=nm,
+            interval_cfg=icfg,
+        )
         truth_F[nm] = _weighted_truth(forces[nm], F_curves)
         n_obs, lnr_obs, cov = _observed_shape(case, n, rng)
         fits[nm] = str(root / "fits" / f"{nm}.h5")
         para = _reference_paraboloid(case) if i == 0 else None
-        write_synthetic_fit(fits[nm], n_obs, lnr_obs, case.S, cov,
-                            flags=("",), rms_residual=0.05e-9, paraboloid=para)
+        write_synthetic_fit(fits[nm], n_obs, lnr_obs, case.S, cov, flags=("",), rms_residual=0.05e-9, paraboloid=para)
         ivs.append({"name": nm, "scans": 10 * i, "reference": i == 0})
     h = np.geomspace(0.1e-9, 20e-9, 160) if h_grid is None else h_grid
-    run_inversion(fits, forces, root / "inversion.h5", intervals=ivs, E_star=case.E_star, u_E_star=0.03 * case.E_star,
-                  h_grid=h, laws=("dugdale",), mc_samples=mc_samples, seed=case.seed, tip=f"case{case.seed}")
+    run_inversion(
+        fits,
+        forces,
+        root / "inversion.h5",
+        intervals=ivs,
+        E_star=case.E_star,
+        u_E_star=0.03 * case.E_star,
+        h_grid=h,
+        laws=("dugdale",),
+        mc_samples=mc_samples,
+        seed=case.seed,
+        tip=f"case{case.seed}",
+    )
     out = _against_truth(load_inversion(root / "inversion.h5"), case, truth_F)
     if tmp is not None:
         tmp.cleanup()
@@ -211,17 +268,30 @@ def _against_truth(inv: dict, case: Case, truth_F: dict) -> dict:
     from pipeline.adhesion_range.analysis import analyse_law
 
     fp_err = [inv["intervals"][nm]["F_p_mean"] / truth_F[nm] - 1.0 for nm in truth_F]
-    out = {"seed": case.seed, "kind": case.kind, "intervals": len(case.n),
-           "drift_sd": float(np.std(case.invols) / np.mean(case.invols)),
-           "fp_err_max": float(np.max(np.abs(fp_err))), "lambda_over_boundary": _max_lambda_ratio(case)}
+    out = {
+        "seed": case.seed,
+        "kind": case.kind,
+        "intervals": len(case.n),
+        "drift_sd": float(np.std(case.invols) / np.mean(case.invols)),
+        "fp_err_max": float(np.max(np.abs(fp_err))),
+        "lambda_over_boundary": _max_lambda_ratio(case),
+    }
     for model in ("random_effects", "birge"):  # the default first: its keys are unprefixed
         g = analyse_law(inv, "dugdale", model)["global"]
         hp, wp = np.asarray(g["h_pcts"]), np.asarray(g["W_pcts"])
-        r = {"status": g.get("status", ""), "h_err": g["h"] / case.h - 1.0, "W_err": g["W_A"] / case.W_A - 1.0,
-             "h_covered": bool(np.nan_to_num(hp[0], nan=-np.inf) <= case.h <= np.nan_to_num(hp[-1], nan=np.inf)),
-             "W_covered": bool(wp[0] <= case.W_A <= wp[-1]), "h_rel_halfwidth": 0.5 * (hp[-1] - hp[0]) / g["h"],
-             "birge": float(g.get("birge_ratio", np.nan)), "tau": float(g.get("tau", np.nan)),
-             "chi2": float(g["chi2_min"]), "dof": int(g["dof"]), "note": g.get("note", "")}
+        r = {
+            "status": g.get("status", ""),
+            "h_err": g["h"] / case.h - 1.0,
+            "W_err": g["W_A"] / case.W_A - 1.0,
+            "h_covered": bool(np.nan_to_num(hp[0], nan=-np.inf) <= case.h <= np.nan_to_num(hp[-1], nan=np.inf)),
+            "W_covered": bool(wp[0] <= case.W_A <= wp[-1]),
+            "h_rel_halfwidth": 0.5 * (hp[-1] - hp[0]) / g["h"],
+            "birge": float(g.get("birge_ratio", np.nan)),
+            "tau": float(g.get("tau", np.nan)),
+            "chi2": float(g["chi2_min"]),
+            "dof": int(g["dof"]),
+            "note": g.get("note", ""),
+        }
         out.update(r if model == "random_effects" else {f"birge_{k}": v for k, v in r.items()})
     return out
 

@@ -14,6 +14,7 @@ deflection-vs-z slope is k_c / (k_c + k) (1 for a hard sample).  White deflectio
 noise (m rms) is added, and the signal is written in volts with InvOLS, a
 baseline offset (V) and a tilt (V per m of extension).
 """
+
 from __future__ import annotations
 
 import csv
@@ -51,7 +52,10 @@ def _instability_gaps(F_p, k, lam):
     h = lambda u: a * u / (1.0 + u * u) ** 2 - 1.0  # noqa: E731
     u_peak = 1.0 / np.sqrt(3.0)
     if h(u_peak) <= 0:
-        raise ValueError(f"no jump-off: lever k={k:g} N/m is too stiff for " f"F_p={F_p:g} N over range {lam:g} m (need F_p > 1.54 k lam)")
+        raise ValueError(
+            f"no jump-off: lever k={k:g} N/m is too stiff for "
+            f"F_p={F_p:g} N over range {lam:g} m (need F_p > 1.54 k lam)"
+        )
     u_off = brentq(h, 0.0, u_peak, xtol=1e-15, rtol=1e-14)
     u_snap = brentq(h, u_peak, 2.0 * a ** (1 / 3) + 2.0, xtol=1e-14)
     return u_off * lam, u_snap * lam
@@ -72,10 +76,24 @@ def _branch_tables(F_p, k, lam, kc, g_off, g_snap, z0, z_c, s, R):
     return (zc_b, dc_b), ((z_c + d_free - g_free)[::-1], d_free[::-1])
 
 
-def make_force_curve(F_p, k, invols, *, seed=0, offset_V=0.0, tilt=0.0, noise=0.1e-9,
-                     contact_stiffness=np.inf, adhesion_range=0.5e-9, setpoint_deflection=20e-9,
-                     z_range=None, n_points=2000, height_start=1.0e-6, height_jitter=0.0,
-                     jitter="sensor") -> SyntheticCurve:
+def make_force_curve(
+    F_p,
+    k,
+    invols,
+    *,
+    seed=0,
+    offset_V=0.0,
+    tilt=0.0,
+    noise=0.1e-9,
+    contact_stiffness=np.inf,
+    adhesion_range=0.5e-9,
+    setpoint_deflection=20e-9,
+    z_range=None,
+    n_points=2000,
+    height_start=1.0e-6,
+    height_jitter=0.0,
+    jitter="sensor",
+) -> SyntheticCurve:
     """One approach + retract ramp.
 
     F_p (N) pull-off force, k (N/m), invols (m/V), offset_V (V), tilt (V/m of
@@ -122,9 +140,23 @@ def make_force_curve(F_p, k, invols, *, seed=0, offset_V=0.0, tilt=0.0, noise=0.
     volts = d / invols + offset_V + tilt * z
     seg = np.array(["approach"] * n_app + ["retract"] * (n_points - n_app), dtype=object)
     delta = -float(_force(g_off, F_p, lam, kc)) / k
-    truth = dict(F_p=F_p, k=k, invols=invols, delta_m=delta, delta_V=delta / invols, contact_slope=s,
-                 z_pulloff=z_po, z_snap=z_snap, noise=noise, offset_V=offset_V, tilt=tilt, seed=seed, z_range=R,
-                 height_jitter=height_jitter, jitter=jitter)
+    truth = dict(
+        F_p=F_p,
+        k=k,
+        invols=invols,
+        delta_m=delta,
+        delta_V=delta / invols,
+        contact_slope=s,
+        z_pulloff=z_po,
+        z_snap=z_snap,
+        noise=noise,
+        offset_V=offset_V,
+        tilt=tilt,
+        seed=seed,
+        z_range=R,
+        height_jitter=height_jitter,
+        jitter=jitter,
+    )
     return SyntheticCurve(height_start - z, volts, seg, truth)
 
 
@@ -134,10 +166,15 @@ def write_curve_csv(path, curve: SyntheticCurve) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     t = curve.truth
     with open(path, "w", newline="") as fh:
-        fh.write(f"# synthetic force curve: F_p={t['F_p']:.6e} N k={t['k']:.6e} " f"N/m invols={t['invols']:.6e} m/V seed={t['seed']}\n")
+        fh.write(
+            f"# synthetic force curve: F_p={t['F_p']:.6e} N k={t['k']:.6e} "
+            f"N/m invols={t['invols']:.6e} m/V seed={t['seed']}\n"
+        )
         w = csv.writer(fh)
         w.writerow(["height_nm", "deflection_V", "segment"])
-        w.writerows(zip((f"{h:.6f}" for h in curve.height * 1e9), (f"{v:.7e}" for v in curve.deflection_V), curve.segment))
+        w.writerows(
+            zip((f"{h:.6f}" for h in curve.height * 1e9), (f"{v:.7e}" for v in curve.deflection_V), curve.segment)
+        )
     return path
 
 
@@ -148,8 +185,9 @@ def sho_psd(f, f0, Q, msq):
     return A * f0**4 / ((f * f - f0 * f0) ** 2 + (f * f0 / Q) ** 2)
 
 
-def thermal_noise_series(k, f0, Q, *, temperature=295.0, invols=50e-9, fs=None, n=2**20,
-                         shape_factor=0.817, white=0.0, seed=0):
+def thermal_noise_series(
+    k, f0, Q, *, temperature=295.0, invols=50e-9, fs=None, n=2**20, shape_factor=0.817, white=0.0, seed=0
+):
     """Thermal deflection record (t in s, volts) of a lever with stiffness k (N/m).
 
     The first-mode apparent deflection has <z^2> = shape_factor k_B T / k (so that

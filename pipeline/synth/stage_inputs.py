@@ -5,6 +5,7 @@ They are written with the files' own writers' layout (groups ``fit``/``fit_n2`` 
 ``interval``/``curves``/``calibration`` of stage 3), read back by ``pipeline.inversion.io.load_fit``
 and ``pipeline.forces.io.load_forces``; the root attribute ``synthetic`` marks them.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -22,8 +23,14 @@ def write_synthetic_fit(path, n_obs, lnr_obs, S, cov, flags=("synthetic",), rms_
     with atomic_h5(path, stage="fit", synthetic=True) as f:
         if paraboloid is not None:
             gp = create_group(f, "fit_n2")
-            for name, val in (("n", 2.0), ("ln_Q", paraboloid[0]), ("Q", np.exp(paraboloid[0])), ("R", np.exp(paraboloid[0])),
-                              ("S", S), ("rms_residual", rms_residual)):
+            for name, val in (
+                ("n", 2.0),
+                ("ln_Q", paraboloid[0]),
+                ("Q", np.exp(paraboloid[0])),
+                ("R", np.exp(paraboloid[0])),
+                ("S", S),
+                ("rms_residual", rms_residual),
+            ):
                 write_dataset(gp, name, val, "1")
             write_dataset(gp, "cov_n_lnQ", np.diag([0.0, paraboloid[1]]), "1")
             write_dataset(gp, "flags", np.array([], dtype=object), "1")
@@ -63,9 +70,27 @@ def write_synthetic_forces(path, curves, F_true, *, k, u_k, invols, u_invols):
         write_dataset(c, "u_invols", u_invols, "m/V")
 
 
-def write_synthetic_inputs(outdir, *, W_A, h, E_star, intervals, n_curves=40, rel_sd_curve=0.08,
-                           sigma_n=0.02, sigma_lnR=0.02, k=0.2, u_k=0.0, invols=50e-9, u_invols=0.0,
-                           seed=1, perturb=True, potential="dugdale", model="mdn", exact=True):
+def write_synthetic_inputs(
+    outdir,
+    *,
+    W_A,
+    h,
+    E_star,
+    intervals,
+    n_curves=40,
+    rel_sd_curve=0.08,
+    sigma_n=0.02,
+    sigma_lnR=0.02,
+    k=0.2,
+    u_k=0.0,
+    invols=50e-9,
+    u_invols=0.0,
+    seed=1,
+    perturb=True,
+    potential="dugdale",
+    model="mdn",
+    exact=True,
+):
     """Generate stage-2/3 style fit and forces HDF5 files for a wear test with known truth.
 
     ``intervals``: list of dicts (name, n, R [m], S (default 1), scans, reference); an optional
@@ -82,8 +107,11 @@ def write_synthetic_inputs(outdir, *, W_A, h, E_star, intervals, n_curves=40, re
         nm = str(iv["name"])
         n, R, S = float(iv["n"]), float(iv["R"]), float(iv.get("S", 1.0))
         q = S ** (n - 2.0) * R ** (n - 1.0)
-        F_true = float(iv["F_p"]) if "F_p" in iv else float(
-            mechanics.pulloff_force(n, q, E_star, W_A, h, potential=potential, model=model, exact=exact))
+        F_true = (
+            float(iv["F_p"])
+            if "F_p" in iv
+            else float(mechanics.pulloff_force(n, q, E_star, W_A, h, potential=potential, model=model, exact=exact))
+        )
         curves = F_true * (1.0 + rel_sd_curve * rng.standard_normal(n_curves))
         if not perturb:
             curves = curves - curves.mean() + F_true
@@ -94,5 +122,7 @@ def write_synthetic_inputs(outdir, *, W_A, h, E_star, intervals, n_curves=40, re
         fits[nm], forces[nm] = str(outdir / "fits" / f"{nm}.h5"), str(outdir / "forces" / f"{nm}.h5")
         write_synthetic_fit(fits[nm], n_obs, lnr_obs, S, cov)
         write_synthetic_forces(forces[nm], curves, F_true, k=k, u_k=u_k, invols=invols, u_invols=u_invols)
-        cfg.append({"name": nm, "scans": int(iv.get("scans", len(cfg) * 20)), "reference": bool(iv.get("reference", False))})
+        cfg.append(
+            {"name": nm, "scans": int(iv.get("scans", len(cfg) * 20)), "reference": bool(iv.get("reference", False))}
+        )
     return fits, forces, cfg

@@ -60,6 +60,7 @@ that only change the radius table redo the coating erosion locally.  The Fisher
 sum is restricted to the bounding box of each derivative's non-zero pixels
 (exactly zero outside: the renders are identical there), which loses nothing.
 """
+
 from __future__ import annotations
 
 import math
@@ -155,7 +156,7 @@ class _Profile:
         lo_i = lo if a == 0 else max(lo, a + k)
         hi_i = hi if b == m else min(hi, b - k)
         rc = self.rc.copy()
-        rc[lo_i:hi_i] = loc[lo_i - a:hi_i - a]
+        rc[lo_i:hi_i] = loc[lo_i - a : hi_i - a]
         return rc
 
 
@@ -241,16 +242,40 @@ def _fisher_matrix(derivatives, expected):
             if r1 <= r0 or c1 <= c0:
                 continue
             F[i, j] = F[j, i] = np.einsum(
-                "ij,ij,ij->", bi[r0 - ri0:r1 - ri0, c0 - ci0:c1 - ci0],
-                bj[r0 - rj0:r1 - rj0, c0 - cj0:c1 - cj0], w[r0:r1, c0:c1])
+                "ij,ij,ij->",
+                bi[r0 - ri0 : r1 - ri0, c0 - ci0 : c1 - ci0],
+                bj[r0 - rj0 : r1 - rj0, c0 - cj0 : c1 - cj0],
+                w[r0:r1, c0:c1],
+            )
     return F
 
 
-def fisher_information(n, Q, pixel_size, shape, *, blur_sigma_px=1.0, edge_snr=5.0, coating_thickness=0.0,
-                       rotation_deg=0.0, orientation="down", apex_px=None, seed=0, z_window=6e-9,
-                       fine_spacing=1e-9, fine_extent=10e-9, coarse_spacing=5e-9, step_px=0.3,
-                       supersample=5, band_margin=2, lambda_core=40e-9, lambda_coat=120e-9, gradient=0.04,
-                       cone_above=25e-9, keep_images=False):
+def fisher_information(
+    n,
+    Q,
+    pixel_size,
+    shape,
+    *,
+    blur_sigma_px=1.0,
+    edge_snr=5.0,
+    coating_thickness=0.0,
+    rotation_deg=0.0,
+    orientation="down",
+    apex_px=None,
+    seed=0,
+    z_window=6e-9,
+    fine_spacing=1e-9,
+    fine_extent=10e-9,
+    coarse_spacing=5e-9,
+    step_px=0.3,
+    supersample=5,
+    band_margin=2,
+    lambda_core=40e-9,
+    lambda_coat=120e-9,
+    gradient=0.04,
+    cone_above=25e-9,
+    keep_images=False,
+):
     """Fisher information of the Poisson image of ``render_tem_image`` (same arguments, SI) about
     (n, log r_ref, shank spline coefficients, nuisances); see the module doc.
 
@@ -267,10 +292,24 @@ def fisher_information(n, Q, pixel_size, shape, *, blur_sigma_px=1.0, edge_snr=5
     z_top = float(_tip_frame_z(corner_r, corner_c, apex, px, rotation_deg, orientation).max())
     knots = window_knots(z_window, z_top, fine_spacing, fine_extent, coarse_spacing)
     prof = _Profile(n, Q, px, shape, coating_thickness, z_window, knots, cone_above)
-    base = dict(n=n, Q=Q, pixel_size=px, shape=shape, apex_px=apex, rotation_deg=rotation_deg,
-                blur_sigma_px=blur_sigma_px, coating_thickness=coating_thickness, orientation=orientation,
-                lambda_core=lambda_core, lambda_coat=lambda_coat, background=1.0, gradient=gradient,
-                gradient_perp=0.0, supersample=supersample, cone_above=cone_above)
+    base = dict(
+        n=n,
+        Q=Q,
+        pixel_size=px,
+        shape=shape,
+        apex_px=apex,
+        rotation_deg=rotation_deg,
+        blur_sigma_px=blur_sigma_px,
+        coating_thickness=coating_thickness,
+        orientation=orientation,
+        lambda_core=lambda_core,
+        lambda_coat=lambda_coat,
+        background=1.0,
+        gradient=gradient,
+        gradient_perp=0.0,
+        supersample=supersample,
+        cone_above=cone_above,
+    )
     tables0 = (prof.zt, prof.ro, prof.rc)
     I0, band = expected_tem_image(**base, tables=tables0, band_width=3 + band_margin, return_band=True)
     base.update(band=band)
@@ -286,12 +325,24 @@ def fisher_information(n, Q, pixel_size, shape, *, blur_sigma_px=1.0, edge_snr=5
     derivs, dropped, steps = _all_derivatives(prof, render, base, apex, step_px, z_window)
     names = list(derivs)
     F = _fisher_matrix([derivs[k] for k in names], I0)
-    info = dict(steps=steps, z_top=z_top, apex_px=apex,
-                n_spline=prof.n_spline, band_pixels=int(band.sum()), dropped=dropped)
+    info = dict(
+        steps=steps, z_top=z_top, apex_px=apex, n_spline=prof.n_spline, band_pixels=int(band.sum()), dropped=dropped
+    )
     if keep_images:
         info.update(expected=I0, band=band, derivatives=derivs)
-    return FisherResult(names, F, n_bg, float(edge_snr), float(n), float(Q), prof.r_ref, prof.z_ref,
-                        time.perf_counter() - t0, renders[0], info)
+    return FisherResult(
+        names,
+        F,
+        n_bg,
+        float(edge_snr),
+        float(n),
+        float(Q),
+        prof.r_ref,
+        prof.z_ref,
+        time.perf_counter() - t0,
+        renders[0],
+        info,
+    )
 
 
 def _all_derivatives(prof, render, base, apex, step_px, z_window):
@@ -318,9 +369,11 @@ def _all_derivatives(prof, render, base, apex, step_px, z_window):
     derivs["gradient_perp"] = _central(lambda h: render(gradient_perp=h), 1e-3)
     derivs["log_lambda_core"] = _central(lambda h: render(lambda_core=lambda_core * math.exp(h)), 1e-2)
     if coated:
+
         def coat(h):  # same grid and outer table, core eroded by the perturbed thickness
             t = coating_thickness + h
             return render(coating_thickness=t, tables=(prof.zt, prof.ro, eroded_radius(prof.zt, prof.ro, t)))
+
         derivs["coating"] = _central(coat, s)
         derivs["log_lambda_coat"] = _central(lambda h: render(lambda_coat=lambda_coat * math.exp(h)), 1e-2)
     # no blur -> no blur parameter; a shank coefficient the image does not see is dropped
@@ -344,7 +397,7 @@ def _rotation_derivative(render, base, apex, px, step_px, L0):
         sel = j_of == j
         if not sel.any():
             continue
-        h = math.degrees(step_px * px / (L0 * 2.0 ** j * 1.5))  # mid-octave distance moves step_px
+        h = math.degrees(step_px * px / (L0 * 2.0**j * 1.5))  # mid-octave distance moves step_px
         q = (render(rotation_deg=rot0 + h) - render(rotation_deg=rot0 - h)) / (2.0 * h)
         out[sel] = q[sel]
     return out

@@ -23,6 +23,7 @@ quantisation) with the geometry, illumination and material as explicit inputs
 and an optional outer-profile override; ``pipeline.synth.tem_fisher`` builds the
 Cramér-Rao bound of n on it.
 """
+
 from __future__ import annotations
 
 import math
@@ -33,8 +34,16 @@ from scipy import ndimage
 
 from pipeline.tem.projection import chord, eroded_radius
 
-__all__ = ["power_law_radius", "outer_radius", "radius_tables", "expected_tem_image", "axis_contrast",
-           "background_dose", "render_tem_image", "write_tem_tiff"]
+__all__ = [
+    "power_law_radius",
+    "outer_radius",
+    "radius_tables",
+    "expected_tem_image",
+    "axis_contrast",
+    "background_dose",
+    "render_tem_image",
+    "write_tem_tiff",
+]
 
 
 def power_law_radius(z, n, Q):
@@ -80,11 +89,32 @@ def silhouette_band(m_out, m_core, width=3):
     return band
 
 
-def expected_tem_image(n, Q, pixel_size, shape, apex_px, *, rotation_deg=0.0, blur_sigma_px=1.0,
-                       coating_thickness=0.0, orientation="down", lambda_core=40e-9, lambda_coat=120e-9,
-                       background=1.0, gradient=0.04, gradient_perp=0.0, supersample=5, contamination=False,
-                       contamination_height=35e-9, cone_above=25e-9, outer=None, tables=None, band=None,
-                       band_width=3, return_band=False):
+def expected_tem_image(
+    n,
+    Q,
+    pixel_size,
+    shape,
+    apex_px,
+    *,
+    rotation_deg=0.0,
+    blur_sigma_px=1.0,
+    coating_thickness=0.0,
+    orientation="down",
+    lambda_core=40e-9,
+    lambda_coat=120e-9,
+    background=1.0,
+    gradient=0.04,
+    gradient_perp=0.0,
+    supersample=5,
+    contamination=False,
+    contamination_height=35e-9,
+    cone_above=25e-9,
+    outer=None,
+    tables=None,
+    band=None,
+    band_width=3,
+    return_band=False,
+):
     """Noise-free expected image relative to the background (before noise, scale bar, quantisation).
 
     Expected counts are this times the background dose N_bg.  apex_px: (row, col)
@@ -192,12 +222,32 @@ def _as_dtype(noisy, dtype, maxval):
     return noisy.astype(dtype)
 
 
-def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge_snr=20.0,
-                     rotation_deg=3.0, coating_thickness=0.0, orientation="down", seed=0, *,
-                     apex_frac=(0.68, 0.5), lambda_core=40e-9, lambda_coat=120e-9,
-                     noise="poisson", background_counts=None, dtype=np.uint16, supersample=5,
-                     scale_bar=True, contamination=False, contamination_height=35e-9,
-                     gradient=0.04, S=1.0, cone_above=25e-9):
+def render_tem_image(
+    n,
+    Q,
+    pixel_size,
+    shape=(512, 512),
+    blur_sigma_px=1.0,
+    edge_snr=20.0,
+    rotation_deg=3.0,
+    coating_thickness=0.0,
+    orientation="down",
+    seed=0,
+    *,
+    apex_frac=(0.68, 0.5),
+    lambda_core=40e-9,
+    lambda_coat=120e-9,
+    noise="poisson",
+    background_counts=None,
+    dtype=np.uint16,
+    supersample=5,
+    scale_bar=True,
+    contamination=False,
+    contamination_height=35e-9,
+    gradient=0.04,
+    S=1.0,
+    cone_above=25e-9,
+):
     """Render a side-view TEM image of a tip whose outer profile is z = r^n/(nQ) (Eq. 1).
 
     n: power index; Q: m^(n-1); pixel_size: m; blur_sigma_px: Gaussian sigma (px);
@@ -214,11 +264,24 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
     r_a, c_a = _apex_position(shape, apex_frac, orientation, rng)
 
     tables = radius_tables(n, Q, px, shape, coating_thickness, cone_above=cone_above)
-    img = expected_tem_image(n, Q, px, shape, (r_a, c_a), rotation_deg=rotation_deg, blur_sigma_px=blur_sigma_px,
-                             coating_thickness=coating_thickness, orientation=orientation,
-                             lambda_core=lambda_core, lambda_coat=lambda_coat, gradient=gradient,
-                             supersample=supersample, contamination=contamination,
-                             contamination_height=contamination_height, tables=tables)
+    img = expected_tem_image(
+        n,
+        Q,
+        px,
+        shape,
+        (r_a, c_a),
+        rotation_deg=rotation_deg,
+        blur_sigma_px=blur_sigma_px,
+        coating_thickness=coating_thickness,
+        orientation=orientation,
+        lambda_core=lambda_core,
+        lambda_coat=lambda_coat,
+        gradient=gradient,
+        supersample=supersample,
+        contamination=contamination,
+        contamination_height=contamination_height,
+        tables=tables,
+    )
     # reference contrast on the axis 3 nm above the apex (noise free, no blur)
     contrast = axis_contrast(tables, lambda_core, lambda_coat)
 
@@ -229,12 +292,25 @@ def render_tem_image(n, Q, pixel_size, shape=(512, 512), blur_sigma_px=1.0, edge
         _draw_scale_bar(noisy, px, orientation)
     out = _as_dtype(noisy, dtype, maxval)
     R = (Q / S ** (n - 2)) ** (1.0 / (n - 1))
-    truth = dict(n=float(n), Q=float(Q), R=float(R), S=float(S), pixel_size=px,
-                 rotation_deg=float(rotation_deg), apex_px=(float(r_a), float(c_a)),
-                 orientation=orientation, coating_thickness=float(coating_thickness),
-                 blur_sigma_px=float(blur_sigma_px), edge_snr=float(edge_snr) if edge_snr else float("inf"),
-                 noise_sigma=float(sigma_noise), background=float(bg), cone_above=float(cone_above),
-                 lambda_core=float(lambda_core), lambda_coat=float(lambda_coat), seed=int(seed))
+    truth = dict(
+        n=float(n),
+        Q=float(Q),
+        R=float(R),
+        S=float(S),
+        pixel_size=px,
+        rotation_deg=float(rotation_deg),
+        apex_px=(float(r_a), float(c_a)),
+        orientation=orientation,
+        coating_thickness=float(coating_thickness),
+        blur_sigma_px=float(blur_sigma_px),
+        edge_snr=float(edge_snr) if edge_snr else float("inf"),
+        noise_sigma=float(sigma_noise),
+        background=float(bg),
+        cone_above=float(cone_above),
+        lambda_core=float(lambda_core),
+        lambda_coat=float(lambda_coat),
+        seed=int(seed),
+    )
     return out, truth
 
 
@@ -279,8 +355,16 @@ def _draw_scale_bar(img, px, orientation):
     cv2.rectangle(mask, (margin, top), (margin + npx, top + h), 255, thickness=-1)
     label = f"{length * 1e9:g} nm"
     scale = max(0.35, H / 1000.0)
-    cv2.putText(mask, label, (margin, top - h - 2), cv2.FONT_HERSHEY_SIMPLEX, scale, 255,
-                max(1, int(round(scale * 2))), cv2.LINE_AA)
+    cv2.putText(
+        mask,
+        label,
+        (margin, top - h - 2),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        scale,
+        255,
+        max(1, int(round(scale * 2))),
+        cv2.LINE_AA,
+    )
     img *= 1.0 - mask / 255.0
 
 
@@ -298,5 +382,6 @@ def write_tem_tiff(path, image, pixel_size, unit="nm"):
         return
     factor = {"nm": 1e9, "um": 1e6}[unit]
     ppu = 1.0 / (pixel_size * factor)
-    tifffile.imwrite(path, image, imagej=True, resolution=(ppu, ppu),
-                     metadata={"unit": "nm" if unit == "nm" else "micron"})
+    tifffile.imwrite(
+        path, image, imagej=True, resolution=(ppu, ppu), metadata={"unit": "nm" if unit == "nm" else "micron"}
+    )

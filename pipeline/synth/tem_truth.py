@@ -1,4 +1,5 @@
 """Compare an extracted profile with the known truth of a synthetic image (tests, benchmark)."""
+
 from __future__ import annotations
 
 import math
@@ -53,10 +54,13 @@ def profile_errors(profile, truth, height):
     m = z >= 0.5e-9
     dr = np.abs(x[m]) - rtrue[m]
     ang = math.degrees(profile.angle)
-    return dict(rms_normal=float(np.sqrt(np.mean(d**2))), bias_normal=float(sd.mean()),
-                rms_r=float(np.sqrt(np.mean(dr**2))) if dr.size else float("nan"),
-                apex_dz=float(_true_tip_coords(profile.apex_px[None, :], truth)[1][0]),
-                axis_deg_err=float(ang - truth["rotation_deg"]))
+    return dict(
+        rms_normal=float(np.sqrt(np.mean(d**2))),
+        bias_normal=float(sd.mean()),
+        rms_r=float(np.sqrt(np.mean(dr**2))) if dr.size else float("nan"),
+        apex_dz=float(_true_tip_coords(profile.apex_px[None, :], truth)[1][0]),
+        axis_deg_err=float(ang - truth["rotation_deg"]),
+    )
 
 
 def force_errors(n_fit, Q_fit, truth, heights=HEIGHTS):
@@ -100,9 +104,22 @@ def coating_decision(profile):
 TIP_SHAPES = {2: 10e-9, 3: 15e-9, 4: 20e-9, 5: 22e-9, 6: 25e-9}  # n -> R (m), S = 1
 
 
-def evaluate_case(n, pixel_size, blur_sigma_px=1.0, edge_snr=20.0, rotation_deg=3.0, coating_thickness=0.0,
-                  orientation="down", seed=0, R=None, fit_height=6e-9, profile_height=20e-9, shape=None,
-                  coating="auto", **kw):
+def evaluate_case(
+    n,
+    pixel_size,
+    blur_sigma_px=1.0,
+    edge_snr=20.0,
+    rotation_deg=3.0,
+    coating_thickness=0.0,
+    orientation="down",
+    seed=0,
+    R=None,
+    fit_height=6e-9,
+    profile_height=20e-9,
+    shape=None,
+    coating="auto",
+    **kw,
+):
     """Render a synthetic image with known truth, extract + fit; return the error metrics (SI)
     and the pipeline's own reported uncertainty (``reported``, see ``reported_uncertainty``).
     ``coating``: what the extraction is told ("auto", "none" or a thickness in m)."""
@@ -118,19 +135,42 @@ def evaluate_case(n, pixel_size, blur_sigma_px=1.0, edge_snr=20.0, rotation_deg=
     if shape is None:
         side = int(np.clip(np.ceil(95e-9 / pixel_size / 32) * 32, 384, 1024))
         shape = (side, side)
-    img, truth = render_tem_image(n, Q, pixel_size, shape=shape, blur_sigma_px=blur_sigma_px, edge_snr=edge_snr,
-                                  rotation_deg=rotation_deg, coating_thickness=coating_thickness,
-                                  orientation=orientation, seed=seed, **kw)
+    img, truth = render_tem_image(
+        n,
+        Q,
+        pixel_size,
+        shape=shape,
+        blur_sigma_px=blur_sigma_px,
+        edge_snr=edge_snr,
+        rotation_deg=rotation_deg,
+        coating_thickness=coating_thickness,
+        orientation=orientation,
+        seed=seed,
+        **kw,
+    )
     t0 = time.perf_counter()
-    prof = extract_profile(TemImage(img.astype(np.float64), pixel_size, "synthetic"),
-                           profile_height=profile_height, coating=coating)
+    prof = extract_profile(
+        TemImage(img.astype(np.float64), pixel_size, "synthetic"), profile_height=profile_height, coating=coating
+    )
     t_prof = time.perf_counter() - t0
     fit = fit_tip_profile(prof, fit_height)
     pe = profile_errors(prof, truth, fit_height)
     fe = force_errors(fit.n, fit.Q, truth)
-    return dict(truth=truth, profile=prof, fit=fit, t_profile=t_prof, rms_normal=pe["rms_normal"],
-                rms_r=pe["rms_r"], bias=pe["bias_normal"], apex_dz=pe["apex_dz"], axis_deg_err=pe["axis_deg_err"],
-                dn=fit.n - n, force_err_max=float(np.max(np.abs(fe))), sigma_n=fit.sigma_n, flags=fit.flags,
-                edge_flags=list(prof.edge_model.get("global_flags", [])),
-                coating_ambiguous=bool((prof.edge_model.get("coating_test") or {}).get("ambiguous", False)),
-                reported=reported_uncertainty(prof, fit, fit_height=fit_height))
+    return dict(
+        truth=truth,
+        profile=prof,
+        fit=fit,
+        t_profile=t_prof,
+        rms_normal=pe["rms_normal"],
+        rms_r=pe["rms_r"],
+        bias=pe["bias_normal"],
+        apex_dz=pe["apex_dz"],
+        axis_deg_err=pe["axis_deg_err"],
+        dn=fit.n - n,
+        force_err_max=float(np.max(np.abs(fe))),
+        sigma_n=fit.sigma_n,
+        flags=fit.flags,
+        edge_flags=list(prof.edge_model.get("global_flags", [])),
+        coating_ambiguous=bool((prof.edge_model.get("coating_test") or {}).get("ambiguous", False)),
+        reported=reported_uncertainty(prof, fit, fit_height=fit_height),
+    )

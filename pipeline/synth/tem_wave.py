@@ -92,6 +92,7 @@ Use: ``image, truth = simulate(draw_params(seed))``; ``python -m pipeline.synth.
 an overlay of the true silhouette and truth JSON).  The grader is
 ``pipeline.synth.tem_wave_truth``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -117,8 +118,18 @@ from pipeline.synth.tem_wave_optics import (
     noise_variance_factor,
 )
 
-__all__ = ["MEAN_INNER_POTENTIAL", "ParticleSpec", "TemWaveParams", "draw_params", "simulate", "simulate_intensity",
-           "tip_body", "write_image", "truth_to_json", "main"]
+__all__ = [
+    "MEAN_INNER_POTENTIAL",
+    "ParticleSpec",
+    "TemWaveParams",
+    "draw_params",
+    "simulate",
+    "simulate_intensity",
+    "tip_body",
+    "write_image",
+    "truth_to_json",
+    "main",
+]
 
 # Mean inner potentials (V); see the module doc for sources.
 MEAN_INNER_POTENTIAL = {"Si": 12.1, "SiO2": 10.1, "DLC": 9.5, "aC": 8.0}
@@ -201,9 +212,14 @@ class TemWaveParams:
         return self.S ** (self.n - 2.0) * self.R ** (self.n - 1.0)
 
     def optics(self):
-        return Optics(kv=self.kv, defocus=self.defocus, cs=self.cs, aperture=self.aperture,
-                      illumination_angle=self.illumination_angle,
-                      focal_spread=focal_spread(self.cc, self.energy_spread_ev, self.kv))
+        return Optics(
+            kv=self.kv,
+            defocus=self.defocus,
+            cs=self.cs,
+            aperture=self.aperture,
+            illumination_angle=self.illumination_angle,
+            focal_spread=focal_spread(self.cc, self.energy_spread_ev, self.kv),
+        )
 
     def potentials(self):
         return {**MEAN_INNER_POTENTIAL, **dict(self.mean_inner_potential)}
@@ -220,12 +236,20 @@ class TemWaveParams:
 
 def tip_body(p: TemWaveParams, z_max=600e-9) -> TipBody:
     """The tip geometry of ``p`` (outer layer included)."""
-    return TipBody(p.n, p.Q, z_join=p.z_join, shank_slope=math.tan(math.radians(p.shank_half_angle_deg)),
-                   blend_length=p.blend_length, asymmetry=p.asymmetry,
-                   layer_thickness=p.layer_thickness if p.layer != "none" else 0.0, z_max=z_max)
+    return TipBody(
+        p.n,
+        p.Q,
+        z_join=p.z_join,
+        shank_slope=math.tan(math.radians(p.shank_half_angle_deg)),
+        blend_length=p.blend_length,
+        asymmetry=p.asymmetry,
+        layer_thickness=p.layer_thickness if p.layer != "none" else 0.0,
+        z_max=z_max,
+    )
 
 
 # ----------------------------------------------------------------------------- frames
+
 
 def _tip_coords(rows, cols, p):
     """Image (row, col) -> tip frame (x, z) in m (apex at 0, z up the tip; rotation
@@ -247,6 +271,7 @@ def _image_coords(x, z, p):
 
 
 # ----------------------------------------------------------------------------- exit wave
+
 
 def _sampling(p):
     """(m, dx, pad): grid cells per pixel edge, grid step (m), padding (grid cells)."""
@@ -305,9 +330,9 @@ def exit_wave(p: TemWaveParams, body=None, particles=None, pad=None):
     for r0 in range(0, n_r, 256):
         rows = np.arange(r0, min(n_r, r0 + 256), dtype=float)
         w, mk = _exit_wave_rows(body, particles, p, m, pad, rows, n_c, pot, lam_abs, sigma)
-        psi[r0:r0 + len(rows)] = w
+        psi[r0 : r0 + len(rows)] = w
         for k, v in mk.items():
-            masks.setdefault(k, np.zeros((n_r, n_c), bool))[r0:r0 + len(rows)] = v
+            masks.setdefault(k, np.zeros((n_r, n_c), bool))[r0 : r0 + len(rows)] = v
     # cells where any material boundary passes (a mask differs from a 4-neighbour's):
     # average the wave over sub-points
     band = np.zeros((n_r, n_c), bool)
@@ -349,11 +374,16 @@ def _z_extent(p, pad, m):
 
 
 def _particles(body, p):
-    return [place_particle(body, s.height, math.radians(s.azimuth_deg), s.semi_axes, s.sink,
-                           math.radians(s.tilt_deg), "aC", s.kind) for s in p.particles]
+    return [
+        place_particle(
+            body, s.height, math.radians(s.azimuth_deg), s.semi_axes, s.sink, math.radians(s.tilt_deg), "aC", s.kind
+        )
+        for s in p.particles
+    ]
 
 
 # ----------------------------------------------------------------------------- image
+
 
 def simulate_intensity(p: TemWaveParams, pad=None, coherent=False, body=None):
     """Noise-free image intensity per detector pixel relative to the incident beam (vacuum = 1),
@@ -363,7 +393,7 @@ def simulate_intensity(p: TemWaveParams, pad=None, coherent=False, body=None):
     psi, (m, dx, pad) = exit_wave(p, body=body, pad=pad)
     inten = image_intensity(psi, dx, p.optics(), coherent=coherent)
     del psi
-    crop = inten[pad:pad + H * m, pad:pad + W * m]
+    crop = inten[pad : pad + H * m, pad : pad + W * m]
     return crop.reshape(H, m, W, m).mean(axis=(1, 3)), (m, dx, pad)
 
 
@@ -480,17 +510,38 @@ def make_truth(p, body, grid, contrast, z_ref, det, dose, sigma_vac, img):
     has_layer = p.layer != "none"
     flank = apex_flanks[0] if len(apex_flanks) == 1 else (None if not apex_flanks else "both")
     return dict(
-        simulator="pipeline.synth.tem_wave", seed=int(p.seed), params=_params_dict(p),
-        pixel_size=p.pixel_size, shape=[H, W], orientation=p.orientation, rotation_deg=p.rotation_deg,
-        apex_px=[float(p.apex_px[0]), float(p.apex_px[1])], axis_px=axis.tolist(),
-        n=p.n, Q=p.Q, R=p.R, S=p.S, z_join=p.z_join, cone_slope=body.cone_slope, asymmetry=p.asymmetry,
-        layer=p.layer, layer_material=LAYER_MATERIAL[p.layer], layer_thickness=p.layer_thickness if has_layer else 0.0,
-        layer_contrast=p.layer_contrast if has_layer else 0.0, materials=materials,
-        particles=parts, particle_flank=flank,
+        simulator="pipeline.synth.tem_wave",
+        seed=int(p.seed),
+        params=_params_dict(p),
+        pixel_size=p.pixel_size,
+        shape=[H, W],
+        orientation=p.orientation,
+        rotation_deg=p.rotation_deg,
+        apex_px=[float(p.apex_px[0]), float(p.apex_px[1])],
+        axis_px=axis.tolist(),
+        n=p.n,
+        Q=p.Q,
+        R=p.R,
+        S=p.S,
+        z_join=p.z_join,
+        cone_slope=body.cone_slope,
+        asymmetry=p.asymmetry,
+        layer=p.layer,
+        layer_material=LAYER_MATERIAL[p.layer],
+        layer_thickness=p.layer_thickness if has_layer else 0.0,
+        layer_contrast=p.layer_contrast if has_layer else 0.0,
+        materials=materials,
+        particles=parts,
+        particle_flank=flank,
         optics=_optics_record(p, o, sigma),
         detector=_detector_record(p, det),
-        dose=dose, snr=p.snr, reference_contrast=contrast, reference_height=z_ref, noise_sigma=sigma_vac,
-        vacuum_level=dose * det.gain + det.offset, saturated_fraction=sat,
+        dose=dose,
+        snr=p.snr,
+        reference_contrast=contrast,
+        reference_height=z_ref,
+        noise_sigma=sigma_vac,
+        vacuum_level=dose * det.gain + det.offset,
+        saturated_fraction=sat,
         sim=dict(cells_per_pixel=m, grid_step=dx, padding=pad, band_limit=band_limit(dx, o), supersample=_SUPERSAMPLE),
         **silhouette,
     )
@@ -504,8 +555,13 @@ def _silhouette_record(p, body, m):
     rows, cols = _image_coords(xs, zs, p)
     zf = np.unique(np.concatenate([np.linspace(0, 30e-9, 3001), np.linspace(30e-9, z_top, 500)]))
     rl, rr = body.flank_radii(zf)
-    return dict(silhouette_px=np.column_stack([rows, cols]), silhouette_tip=np.column_stack([xs, zs]),
-                flank_z=zf, flank_r_left=rl, flank_r_right=rr)
+    return dict(
+        silhouette_px=np.column_stack([rows, cols]),
+        silhouette_tip=np.column_stack([xs, zs]),
+        flank_z=zf,
+        flank_r_left=rl,
+        flank_r_right=rr,
+    )
 
 
 def _particle_records(p, body):
@@ -513,10 +569,20 @@ def _particle_records(p, body):
     parts = []
     for s, pp in zip(p.particles, _particles(body, p)):
         r_, c_ = _image_coords(pp.centre[0], pp.centre[2], p)
-        parts.append(dict(kind=s.kind, flank="right" if pp.flank > 0 else "left", height=float(s.height),
-                          azimuth_deg=float(s.azimuth_deg), semi_axes=[float(v) for v in s.semi_axes],
-                          sink=float(s.sink), centre_tip=[float(v) for v in pp.centre],
-                          centre_px=[float(r_), float(c_)], protrusion=_protrusion(body, pp), material="aC"))
+        parts.append(
+            dict(
+                kind=s.kind,
+                flank="right" if pp.flank > 0 else "left",
+                height=float(s.height),
+                azimuth_deg=float(s.azimuth_deg),
+                semi_axes=[float(v) for v in s.semi_axes],
+                sink=float(s.sink),
+                centre_tip=[float(v) for v in pp.centre],
+                centre_px=[float(r_), float(c_)],
+                protrusion=_protrusion(body, pp),
+                material="aC",
+            )
+        )
     return parts
 
 
@@ -524,22 +590,40 @@ def _materials_record(p, sigma):
     """Mean inner potential, absorption length and phase per length of each material."""
     lam_abs = p.absorption_lengths()
     pot = p.potentials()
-    return {mat: dict(mean_inner_potential=pot[mat], absorption_length=lam_abs[mat],
-                      phase_per_length=sigma * pot[mat]) for mat in lam_abs}
+    return {
+        mat: dict(mean_inner_potential=pot[mat], absorption_length=lam_abs[mat], phase_per_length=sigma * pot[mat])
+        for mat in lam_abs
+    }
 
 
 def _optics_record(p, o, sigma):
     """The truth's optics (``o = p.optics()``, ``sigma`` the interaction constant)."""
-    return dict(kv=o.kv, wavelength=o.wavelength, interaction_constant=sigma, defocus=o.defocus, cs=o.cs,
-                aperture=o.aperture, illumination_angle=o.illumination_angle, focal_spread=o.focal_spread,
-                cc=p.cc, energy_spread_ev=p.energy_spread_ev,
-                fringe_width=math.sqrt(o.wavelength * abs(o.defocus)))
+    return dict(
+        kv=o.kv,
+        wavelength=o.wavelength,
+        interaction_constant=sigma,
+        defocus=o.defocus,
+        cs=o.cs,
+        aperture=o.aperture,
+        illumination_angle=o.illumination_angle,
+        focal_spread=o.focal_spread,
+        cc=p.cc,
+        energy_spread_ev=p.energy_spread_ev,
+        fringe_width=math.sqrt(o.wavelength * abs(o.defocus)),
+    )
 
 
 def _detector_record(p, det):
     """The truth's detector."""
-    return dict(bits=p.bits, gain=det.gain, offset=det.offset, read_noise=det.read_noise, psf_sigma=det.psf_sigma,
-                tail_weight=det.tail_weight, tail_length=det.tail_length)
+    return dict(
+        bits=p.bits,
+        gain=det.gain,
+        offset=det.offset,
+        read_noise=det.read_noise,
+        psf_sigma=det.psf_sigma,
+        tail_weight=det.tail_weight,
+        tail_length=det.tail_length,
+    )
 
 
 def _protrusion(body, part):
@@ -562,10 +646,16 @@ def _params_dict(p):
 
 # ----------------------------------------------------------------------------- random draws
 
+
 def _fits(d, field_w):
     """True if the tip of draw ``d`` is at most 55 % of the field wide 26 nm above its apex."""
-    body = TipBody(d["n"], d["S"] ** (d["n"] - 2) * d["R"] ** (d["n"] - 1), z_join=d["z_join"],
-                   shank_slope=math.tan(math.radians(d["shank_half_angle_deg"])), blend_length=d["blend_length"])
+    body = TipBody(
+        d["n"],
+        d["S"] ** (d["n"] - 2) * d["R"] ** (d["n"] - 1),
+        z_join=d["z_join"],
+        shank_slope=math.tan(math.radians(d["shank_half_angle_deg"])),
+        blend_length=d["blend_length"],
+    )
     return 2 * float(body.radius(26e-9)) * (1 + abs(d["asymmetry"])) <= 0.55 * field_w
 
 
@@ -587,8 +677,14 @@ def draw_params(seed, apex_particles=None, shank_contamination=None, **fixed) ->
     def u(lo=0.0, hi=1.0):
         return lo + (hi - lo) * next(X)
 
-    d = dict(n=u(2.0, 6.0), R=u(8e-9, 35e-9), S=u(1.0, 2.0), z_join=u(8e-9, 30e-9),
-             shank_half_angle_deg=u(10.0, 25.0), blend_length=u(10e-9, 40e-9))
+    d = dict(
+        n=u(2.0, 6.0),
+        R=u(8e-9, 35e-9),
+        S=u(1.0, 2.0),
+        z_join=u(8e-9, 30e-9),
+        shank_half_angle_deg=u(10.0, 25.0),
+        blend_length=u(10e-9, 40e-9),
+    )
     a0, a1, a2 = u(), u(), u()
     d["asymmetry"] = 0.0 if a0 < 0.5 else (1 if a1 < 0.5 else -1) * (0.01 + 0.04 * a2)
     k0, k1, k2 = u(), u(), u()
@@ -651,8 +747,9 @@ def _detector_draws(d, fixed, b1, b2, b3, b4):
     """Background level, offset and read noise from the bit depth (unless fixed)."""
     bits = d["bits"]
     if "background_level" not in fixed:
-        d["background_level"] = (1.02 + 0.18 * b2 if (b1 < 0.15 and bits) else
-                                 (0.55 + 0.35 * b2 if bits == 8 else 0.05 + 0.75 * b2))
+        d["background_level"] = (
+            1.02 + 0.18 * b2 if (b1 < 0.15 and bits) else (0.55 + 0.35 * b2 if bits == 8 else 0.05 + 0.75 * b2)
+        )
     if "offset" not in fixed:
         d["offset"] = {8: 8 * b3, 16: 300 * b3, 0: 0.0}[bits]
     if "read_noise" not in fixed:
@@ -685,19 +782,36 @@ def _draw_particles(want_apex, want_shank, p2, p3, p4, apex_draws, shank_draws, 
         for a_ in apex_draws[: 1 + int(3 * p3 * 0.999)]:
             semi = (0.5e-9 + 2e-9 * a_[1], 0.5e-9 + 2e-9 * a_[2])
             semi = semi + ((0.8 + 0.4 * a_[3]) * 0.5 * (semi[0] + semi[1]),)
-            parts.append(ParticleSpec(height=3e-9 + 17e-9 * a_[0], azimuth_deg=side + (a_[4] - 0.5) * 40.0,
-                                      semi_axes=semi, sink=0.3 + 0.6 * a_[5], tilt_deg=180.0 * a_[6], kind="apex"))
+            parts.append(
+                ParticleSpec(
+                    height=3e-9 + 17e-9 * a_[0],
+                    azimuth_deg=side + (a_[4] - 0.5) * 40.0,
+                    semi_axes=semi,
+                    sink=0.3 + 0.6 * a_[5],
+                    tilt_deg=180.0 * a_[6],
+                    kind="apex",
+                )
+            )
     if want_shank:  # 1-3 blobs 6-24 nm far up the shank, either flank
         z_hi = max(40e-9, 0.8 * H * px)
         for a_ in shank_draws[: 1 + int(3 * p4 * 0.999)]:
             semi = (3e-9 + 9e-9 * a_[1], 3e-9 + 9e-9 * a_[2], 3e-9 + 9e-9 * a_[3])
             az = (0.0 if a_[4] < 0.5 else 180.0) + (a_[5] - 0.5) * 60.0
-            parts.append(ParticleSpec(height=30e-9 + (z_hi - 30e-9) * a_[0], azimuth_deg=az, semi_axes=semi,
-                                      sink=0.5, tilt_deg=0.0, kind="shank"))
+            parts.append(
+                ParticleSpec(
+                    height=30e-9 + (z_hi - 30e-9) * a_[0],
+                    azimuth_deg=az,
+                    semi_axes=semi,
+                    sink=0.5,
+                    tilt_deg=0.0,
+                    kind="shank",
+                )
+            )
     return tuple(parts)
 
 
 # ----------------------------------------------------------------------------- files
+
 
 def write_image(path, image, pixel_size, calibrated=True):
     """Save as an instrument would: TIFF (ImageJ resolution tags in nm; float32 allowed) or
@@ -722,6 +836,7 @@ def write_image(path, image, pixel_size, calibrated=True):
 
 def truth_to_json(truth):
     """JSON-serialisable copy of a truth record (arrays as lists; the intensity map dropped)."""
+
     def conv(v):
         if isinstance(v, np.ndarray):
             return v.tolist()
@@ -732,6 +847,7 @@ def truth_to_json(truth):
         if isinstance(v, (np.floating, np.integer)):
             return v.item()
         return v
+
     return conv(truth)
 
 
@@ -755,9 +871,12 @@ def _preview(image, truth, path, overlay):
         ax.set_xlim(-0.5, W - 0.5)
         ax.set_ylim(H - 0.5, -0.5)
     p = truth["params"]
-    ax.set_title(f"n {p['n']:.2f}, {p['layer']} {p['layer_thickness'] * 1e9:.1f} nm, {p['kv']:.0f} kV, "
-                 f"df {p['defocus'] * 1e6:+.2f} um, px {p['pixel_size'] * 1e9:.2f} nm, SNR {p['snr']:.0f}, "
-                 f"{p['bits'] or 'float'} bit", fontsize=7)
+    ax.set_title(
+        f"n {p['n']:.2f}, {p['layer']} {p['layer_thickness'] * 1e9:.1f} nm, {p['kv']:.0f} kV, "
+        f"df {p['defocus'] * 1e6:+.2f} um, px {p['pixel_size'] * 1e9:.2f} nm, SNR {p['snr']:.0f}, "
+        f"{p['bits'] or 'float'} bit",
+        fontsize=7,
+    )
     ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -783,9 +902,12 @@ def main(argv=None):
         _preview(img, truth, f"{stem}_truth.png", overlay=True)
         with open(f"{stem}_truth.json", "w") as fh:
             json.dump(truth_to_json(truth), fh, indent=1)
-        print(f"{stem}.tif  {p.shape[0]}x{p.shape[1]}  n {p.n:.2f}  {p.layer} {p.layer_thickness * 1e9:.1f} nm  "
-              f"{p.kv:.0f} kV  df {p.defocus * 1e6:+.2f} um  px {p.pixel_size * 1e9:.3f} nm  SNR {p.snr:.0f}  "
-              f"bits {p.bits or 'float32'}  particles {len(p.particles)}", flush=True)
+        print(
+            f"{stem}.tif  {p.shape[0]}x{p.shape[1]}  n {p.n:.2f}  {p.layer} {p.layer_thickness * 1e9:.1f} nm  "
+            f"{p.kv:.0f} kV  df {p.defocus * 1e6:+.2f} um  px {p.pixel_size * 1e9:.3f} nm  SNR {p.snr:.0f}  "
+            f"bits {p.bits or 'float32'}  particles {len(p.particles)}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ Contamination particles: ellipsoids of amorphous carbon with one principal axis 
 beam, partly sunk into the surface; where a particle and the tip overlap, the tip's material
 is counted (the chord of the particle minus its overlap with the tip's chord).
 """
+
 from __future__ import annotations
 
 import math
@@ -40,8 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["TipBody", "Particle", "limacon_chord", "eroded_radius_table", "projected_thickness",
-           "place_particle"]
+__all__ = ["TipBody", "Particle", "limacon_chord", "eroded_radius_table", "projected_thickness", "place_particle"]
 
 
 def limacon_chord(x, r, e):

@@ -27,6 +27,7 @@ spread function, MTF_s(f) = (1 - w) exp(-2 pi^2 s^2 f^2) + w / (1 + (2 pi L f)^2
 own box comes from integrating the fine simulation grid over each pixel), converted with a
 gain (DN per electron), offset, Gaussian read noise, rounded and clipped to the bit depth.
 """
+
 from __future__ import annotations
 
 import math
@@ -35,10 +36,26 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
-__all__ = ["PLANCK", "E_CHARGE", "M_ELECTRON", "C_LIGHT", "REST_ENERGY_EV", "electron_gamma", "electron_beta2",
-           "electron_wavelength", "interaction_constant", "focal_spread", "Optics", "transfer_function",
-           "transfer_block",
-           "delocalisation", "image_intensity", "Detector", "detector_mtf", "detect"]
+__all__ = [
+    "PLANCK",
+    "E_CHARGE",
+    "M_ELECTRON",
+    "C_LIGHT",
+    "REST_ENERGY_EV",
+    "electron_gamma",
+    "electron_beta2",
+    "electron_wavelength",
+    "interaction_constant",
+    "focal_spread",
+    "Optics",
+    "transfer_function",
+    "transfer_block",
+    "delocalisation",
+    "image_intensity",
+    "Detector",
+    "detector_mtf",
+    "detect",
+]
 
 PLANCK = 6.62607015e-34  # J s
 E_CHARGE = 1.602176634e-19  # C
@@ -124,7 +141,7 @@ def delocalisation(optics, dx, threshold=1e-3):
 def _band_indices(n, dx, kmax):
     """FFT-layout indices along one axis of the frequencies |k| <= kmax."""
     q = min(n // 2, int(math.floor(kmax * n * dx)) + 1)
-    return np.unique(np.r_[0:q + 1, n - q:n] % n)
+    return np.unique(np.r_[0 : q + 1, n - q : n] % n)
 
 
 def transfer_block(shape, dx, optics, coherent=False):

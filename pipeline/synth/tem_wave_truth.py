@@ -23,6 +23,7 @@ Metrics (SI units):
 -> ``extract_profile`` (workflow defaults) -> profile HDF5 -> ``pipeline.fits.stage.run_fit`` ->
 the fit HDF5 read back, and grades it.
 """
+
 from __future__ import annotations
 
 import math
@@ -33,8 +34,18 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["tip_frame", "true_section_area", "edge_errors", "ideal_fit", "grade", "sigma_n", "lost_reason",
-           "evaluate_file", "plot_comparison", "HEIGHTS"]
+__all__ = [
+    "tip_frame",
+    "true_section_area",
+    "edge_errors",
+    "ideal_fit",
+    "grade",
+    "sigma_n",
+    "lost_reason",
+    "evaluate_file",
+    "plot_comparison",
+    "HEIGHTS",
+]
 
 HEIGHTS = np.linspace(1e-9, 6e-9, 11)  # m, Eq. 12 pull-off heights h
 
@@ -53,8 +64,10 @@ def tip_frame(points_px, truth):
 
 def _flank_radii(truth, z):
     zf = np.asarray(truth["flank_z"])
-    return (np.interp(z, zf, np.asarray(truth["flank_r_left"]), left=np.nan),
-            np.interp(z, zf, np.asarray(truth["flank_r_right"]), left=np.nan))
+    return (
+        np.interp(z, zf, np.asarray(truth["flank_r_left"]), left=np.nan),
+        np.interp(z, zf, np.asarray(truth["flank_r_right"]), left=np.nan),
+    )
 
 
 def true_section_area(truth, h):
@@ -98,8 +111,14 @@ def edge_errors(edge_px, truth, select=None):
     def rms(v):
         return float(np.sqrt(np.mean(v**2))) if v.size else float("nan")
 
-    return dict(rms=rms(d), rms_left=rms(d[x < 0]), rms_right=rms(d[x >= 0]), bias=float(sd.mean()),
-                max=float(d.max()), n_points=int(x.size))
+    return dict(
+        rms=rms(d),
+        rms_left=rms(d[x < 0]),
+        rms_right=rms(d[x >= 0]),
+        bias=float(sd.mean()),
+        max=float(d.max()),
+        n_points=int(x.size),
+    )
 
 
 def ideal_fit(truth, fit_height=6e-9, spacing=0.05e-9):
@@ -149,18 +168,31 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
     em = profile.edge_model
     ct = em.get("coating_test") or {}
     return dict(
-        edge_rms=e["rms"], edge_rms_left=e["rms_left"], edge_rms_right=e["rms_right"], edge_bias=e["bias"],
-        edge_max=e["max"], edge_points=e["n_points"],
-        apex_error=float(math.hypot(ax[0], az[0])), apex_dz=float(az[0]),
+        edge_rms=e["rms"],
+        edge_rms_left=e["rms_left"],
+        edge_rms_right=e["rms_right"],
+        edge_bias=e["bias"],
+        edge_max=e["max"],
+        edge_points=e["n_points"],
+        apex_error=float(math.hypot(ax[0], az[0])),
+        apex_dz=float(az[0]),
         axis_error_deg=float(math.degrees(profile.angle) - truth["rotation_deg"]),
-        n_fit=float(fit.n), sigma_n=sn, dn=float(dn), n_covered=bool(abs(dn) <= 2 * sn),
-        n_ideal=float(ideal.n), dn_ideal=float(ideal.n - truth["n"]),
-        pulloff_error=float(np.max(np.abs(f_err))), pulloff_error_signed=float(f_err[np.argmax(np.abs(f_err))]),
+        n_fit=float(fit.n),
+        sigma_n=sn,
+        dn=float(dn),
+        n_covered=bool(abs(dn) <= 2 * sn),
+        n_ideal=float(ideal.n),
+        dn_ideal=float(ideal.n - truth["n"]),
+        pulloff_error=float(np.max(np.abs(f_err))),
+        pulloff_error_signed=float(f_err[np.argmax(np.abs(f_err))]),
         pulloff_covered=bool(np.all(np.abs(f_err) <= 2 * sd_f)),
-        fit_flags=list(fit.flags), edge_flags=list(em.get("global_flags", [])),
-        coating_model=ct.get("model", ""), coating_ambiguous=bool(ct.get("ambiguous", False)),
+        fit_flags=list(fit.flags),
+        edge_flags=list(em.get("global_flags", [])),
+        coating_model=ct.get("model", ""),
+        coating_ambiguous=bool(ct.get("ambiguous", False)),
         coating_found=float(em.get("coating_thickness", 0.0)),
-        lost=bool(lost_reason(fit)), lost_reason=lost_reason(fit),
+        lost=bool(lost_reason(fit)),
+        lost_reason=lost_reason(fit),
     )
 
 
@@ -227,8 +259,9 @@ def plot_comparison(data, truth, profile, metrics, path, half_height=25e-9):
     crop = data[r0:r1, c0:c1]
     lo, hi = np.percentile(crop, [0.5, 99.5])
     fig, ax = plt.subplots(figsize=(6, 6 * (r1 - r0) / max(c1 - c0, 1)))
-    ax.imshow(crop, cmap="gray", vmin=lo, vmax=hi, extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5),
-              interpolation="nearest")
+    ax.imshow(
+        crop, cmap="gray", vmin=lo, vmax=hi, extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5), interpolation="nearest"
+    )
     s = np.asarray(truth["silhouette_px"])
     ax.plot(s[:, 1], s[:, 0], "r-", lw=0.8, label="true outer silhouette")
     for q in truth["particles"]:
@@ -246,14 +279,18 @@ def plot_comparison(data, truth, profile, metrics, path, half_height=25e-9):
     if metrics.get("lost") and "dn" not in metrics:
         title = f"LOST: {metrics['lost_reason'][:90]}"
     else:
-        title = (f"n {truth['n']:.2f}: dn {metrics['dn']:+.3f} (sigma_n {metrics['sigma_n']:.3f}), edge RMS "
-                 f"{metrics['edge_rms'] * 1e9:.2f} nm (bias {metrics['edge_bias'] * 1e9:+.2f}), pull-off "
-                 f"{100 * metrics['pulloff_error_signed']:+.1f} %" + ("  LOST" if metrics.get("lost") else ""))
+        title = (
+            f"n {truth['n']:.2f}: dn {metrics['dn']:+.3f} (sigma_n {metrics['sigma_n']:.3f}), edge RMS "
+            f"{metrics['edge_rms'] * 1e9:.2f} nm (bias {metrics['edge_bias'] * 1e9:+.2f}), pull-off "
+            f"{100 * metrics['pulloff_error_signed']:+.1f} %" + ("  LOST" if metrics.get("lost") else "")
+        )
     p = truth["params"]
-    sub = (f"{p['layer']} {p['layer_thickness'] * 1e9:.1f} nm, e {p['asymmetry']:+.3f}, "
-           f"df {p['defocus'] * 1e6:+.2f} um, "
-           f"{p['kv']:.0f} kV, px {p['pixel_size'] * 1e9:.2f} nm, SNR {p['snr']:.0f}, {p['bits'] or 'float'} bit, "
-           f"saturated {truth['saturated_fraction']:.0%}")
+    sub = (
+        f"{p['layer']} {p['layer_thickness'] * 1e9:.1f} nm, e {p['asymmetry']:+.3f}, "
+        f"df {p['defocus'] * 1e6:+.2f} um, "
+        f"{p['kv']:.0f} kV, px {p['pixel_size'] * 1e9:.2f} nm, SNR {p['snr']:.0f}, {p['bits'] or 'float'} bit, "
+        f"saturated {truth['saturated_fraction']:.0%}"
+    )
     ax.set_title(title + "\n" + sub, fontsize=7)
     ax.axis("off")
     fig.tight_layout()

@@ -10,6 +10,7 @@ data (``truth.yaml``), and a tip YAML for ``config/tips/`` that points at it.
 
 Everything is deterministic for a given seed.
 """
+
 from __future__ import annotations
 
 import copy
@@ -77,21 +78,51 @@ def sample_tips() -> list[TipTruth]:
         TipTruth(
             name="tipA_DLC",
             description="DLC-coated Si tip worn on a DLC flat (like the paper's tip A)",
-            R=30e-9, S=1.0, n=[2.0, 2.9, 3.8, 4.6, 5.4], scans=[0, 10, 30, 60, 100],
-            W_A=46.7e-3, h=4.6e-9,
-            E_tip=150e9, nu_tip=0.3, E_sample=150e9, nu_sample=0.3, u_E_star=5e9,
-            k=1.2, u_k=0.06, invols=45e-9, u_invols=0.9e-9,
-            pixel_size=0.25e-9, coating=15e-9, rotation_deg=4.0, seed=11,
-            calibration="curves", k_ref=0.55, u_k_ref=0.0165,
+            R=30e-9,
+            S=1.0,
+            n=[2.0, 2.9, 3.8, 4.6, 5.4],
+            scans=[0, 10, 30, 60, 100],
+            W_A=46.7e-3,
+            h=4.6e-9,
+            E_tip=150e9,
+            nu_tip=0.3,
+            E_sample=150e9,
+            nu_sample=0.3,
+            u_E_star=5e9,
+            k=1.2,
+            u_k=0.06,
+            invols=45e-9,
+            u_invols=0.9e-9,
+            pixel_size=0.25e-9,
+            coating=15e-9,
+            rotation_deg=4.0,
+            seed=11,
+            calibration="curves",
+            k_ref=0.55,
+            u_k_ref=0.0165,
         ),
         TipTruth(
             name="tipB_Si",
             description="Si tip with native oxide worn on a DLC flat (like the paper's tip B)",
-            R=10e-9, S=2.0, n=[2.0, 3.1, 4.0, 4.9, 5.8], scans=[0, 10, 30, 60, 100],
-            W_A=79.8e-3, h=4.5e-9,
-            E_tip=165e9, nu_tip=0.22, E_sample=150e9, nu_sample=0.3, u_E_star=5e9,
-            k=0.9, u_k=0.045, invols=60e-9, u_invols=1.2e-9,
-            pixel_size=0.2e-9, coating=1.5e-9, rotation_deg=-6.0, seed=22,
+            R=10e-9,
+            S=2.0,
+            n=[2.0, 3.1, 4.0, 4.9, 5.8],
+            scans=[0, 10, 30, 60, 100],
+            W_A=79.8e-3,
+            h=4.5e-9,
+            E_tip=165e9,
+            nu_tip=0.22,
+            E_sample=150e9,
+            nu_sample=0.3,
+            u_E_star=5e9,
+            k=0.9,
+            u_k=0.045,
+            invols=60e-9,
+            u_invols=1.2e-9,
+            pixel_size=0.2e-9,
+            coating=1.5e-9,
+            rotation_deg=-6.0,
+            seed=22,
         ),
     ]
 
@@ -159,9 +190,17 @@ def _write_interval(t: TipTruth, i, name, n, scans, F, invols_i, out_dir: Path, 
 
     Q = t.Q(n)
     img, img_truth = render_tem_image(
-        n=n, Q=Q, pixel_size=t.pixel_size, shape=(512, 512), blur_sigma_px=t.blur_sigma_px,
-        edge_snr=t.edge_snr, rotation_deg=t.rotation_deg + rng.normal(0, 0.5),
-        coating_thickness=t.coating, orientation="down", seed=int(rng.integers(2**31)), S=t.S,
+        n=n,
+        Q=Q,
+        pixel_size=t.pixel_size,
+        shape=(512, 512),
+        blur_sigma_px=t.blur_sigma_px,
+        edge_snr=t.edge_snr,
+        rotation_deg=t.rotation_deg + rng.normal(0, 0.5),
+        coating_thickness=t.coating,
+        orientation="down",
+        seed=int(rng.integers(2**31)),
+        S=t.S,
         contamination=(i == len(t.n) - 1),
     )
     (out_dir / "tem").mkdir(parents=True, exist_ok=True)
@@ -170,16 +209,28 @@ def _write_interval(t: TipTruth, i, name, n, scans, F, invols_i, out_dir: Path, 
     F_curves = F * (1.0 + t.fp_scatter * rng.standard_normal(t.curves_per_interval))
     for j, Fj in enumerate(F_curves):
         curve = make_force_curve(
-            F_p=float(Fj), k=t.k, invols=invols_i, seed=int(rng.integers(2**31)),
-            offset_V=float(rng.normal(0.0, 0.05)), tilt=float(rng.normal(0.0, 2e5)), noise=0.1e-9,
+            F_p=float(Fj),
+            k=t.k,
+            invols=invols_i,
+            seed=int(rng.integers(2**31)),
+            offset_V=float(rng.normal(0.0, 0.05)),
+            tilt=float(rng.normal(0.0, 2e5)),
+            noise=0.1e-9,
         )
         write_curve_csv(curve_dir / f"curve_{j + 1:02d}.csv", curve)
     return {
-        "name": name, "scans": scans, "n": n, "Q_SI": Q,
-        "F_p_true_N": float(F), "F_p_curves_N": [float(x) for x in F_curves],
+        "name": name,
+        "scans": scans,
+        "n": n,
+        "Q_SI": Q,
+        "F_p_true_N": float(F),
+        "F_p_curves_N": [float(x) for x in F_curves],
         "deflection_sensitivity_m_per_V": invols_i,
-        "image": {k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in img_truth.items()
-                  if isinstance(v, (int, float, str, np.floating))},
+        "image": {
+            k: (float(v) if isinstance(v, (int, float, np.floating)) else v)
+            for k, v in img_truth.items()
+            if isinstance(v, (int, float, str, np.floating))
+        },
     }
 
 
@@ -191,8 +242,14 @@ def _write_calibration_curves(t: TipTruth, out_dir: Path, rng, count: int = 4) -
     for sub, kc in (("hard_sample", np.inf), ("reference_lever", t.k_ref)):
         for j in range(count):
             curve = make_force_curve(
-                F_p=2e-9, k=t.k, invols=t.invols, contact_stiffness=kc, seed=int(rng.integers(2**31)),
-                offset_V=float(rng.normal(0.0, 0.05)), noise=0.1e-9, setpoint_deflection=40e-9,
+                F_p=2e-9,
+                k=t.k,
+                invols=t.invols,
+                contact_stiffness=kc,
+                seed=int(rng.integers(2**31)),
+                offset_V=float(rng.normal(0.0, 0.05)),
+                noise=0.1e-9,
+                setpoint_deflection=40e-9,
                 z_range=150e-9 if np.isinf(kc) else 150e-9 * (kc + t.k) / kc,
             )
             write_curve_csv(out_dir / sub / f"curve_{j + 1:02d}.csv", curve)
@@ -247,7 +304,8 @@ def write_sample_bundle(out="data_samples", config_dir="config/tips", tips=None)
         cfg = tip_config(t, data_dir=str(out / t.name))
         header = (
             f"# {t.description}.\n"
-            "# Generated by `python -m pipeline make-samples` " f"(seeded); ground truth in {out / t.name / 'truth.yaml'}.\n"
+            "# Generated by `python -m pipeline make-samples` "
+            f"(seeded); ground truth in {out / t.name / 'truth.yaml'}.\n"
             "# Every dimensional value carries its unit; see README 'Configuration'.\n"
             "# k is one per tip; InvOLS is measured for every interval from the contact slope of its own\n"
             "# curves (the default: the chip is remounted for every TEM session).\n"

@@ -1,5 +1,6 @@
 """Coating search of the silhouette fit: starts of the coated model under the single-layer fit,
 their convergence and the decision whether a light outer layer is seen (``COAT_DCHI2``)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -100,8 +101,13 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
     gain = float(st1.cost - bp.cost)
     # outward shift of the coated model's outer edge relative to the single layer's
     shift = float(np.mean(bp.v[:K] - c1))
-    test.update(dchi2=gain, physical=_physical(f2, bp), thickness_px=float(coat2), contrast_ratio=float(ko2 / kc2),
-                outer_shift_px=shift)
+    test.update(
+        dchi2=gain,
+        physical=_physical(f2, bp),
+        thickness_px=float(coat2),
+        contrast_ratio=float(ko2 / kc2),
+        outer_shift_px=shift,
+    )
     if coat_hint or (gain > COAT_DCHI2 and _physical(f2, bp)):
         test["model"] = "coated"
     else:
@@ -142,7 +148,7 @@ def _more_starts(f2, starts, order, runs, bp, cost1, lim2, max_iter):
     """(best physical run, iterations) after COAT_EXTRA_STARTS more starts (appended to ``runs``),
     the best physical one converged if it beats ``bp``."""
     n_it = 0
-    for j in order[2:2 + COAT_EXTRA_STARTS]:
+    for j in order[2 : 2 + COAT_EXTRA_STARTS]:
         st, _, _, it = f2.run(starts[j], "full", COAT_START_ITERS, *lim2)
         n_it += it
         runs.append(st)
@@ -171,8 +177,11 @@ def _ambiguous_layer(f2, runs, bp, gain, single, cost1, lim2, max_iter, test):
         # thicker layers stopped after their start iterations just outside the threshold
         # may reach it when converged: the largest shift needs them
         reach = max(shift_of(r) for r in alike)
-        near = [r for r in runs if _physical(f2, r) and -3 * COAT_DCHI2 < cost1 - r.cost <= -COAT_DCHI2
-                and shift_of(r) > reach]
+        near = [
+            r
+            for r in runs
+            if _physical(f2, r) and -3 * COAT_DCHI2 < cost1 - r.cost <= -COAT_DCHI2 and shift_of(r) > reach
+        ]
         for r in sorted(near, key=shift_of, reverse=True)[:2]:
             st, it = _converge(f2, r, cost1, lim2, max_iter)
             n_it += it
@@ -180,6 +189,10 @@ def _ambiguous_layer(f2, runs, bp, gain, single, cost1, lim2, max_iter, test):
                 alike.append(st)
         far = max(alike, key=shift_of)
         _, _, ko_f, kc_f, coat_f = f2.unpack(far.v)
-        test.update(ambiguous=True, ambiguous_shift_px=shift_of(far), ambiguous_thickness_px=float(coat_f),
-                    ambiguous_dchi2=float(cost1 - far.cost))
+        test.update(
+            ambiguous=True,
+            ambiguous_shift_px=shift_of(far),
+            ambiguous_thickness_px=float(coat_f),
+            ambiguous_dchi2=float(cost1 - far.cost),
+        )
     return n_it

@@ -23,6 +23,7 @@
    Noise-free synthetic images: edge within 0.01 nm of the true surface.
 All coordinates here are pixels (row, col); the tip points down (callers flip "up" images).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -238,7 +239,7 @@ def flatten_background(win):
         res = vals - A @ coef
         s = 1.4826 * np.median(np.abs(res[keep])) + 1e-12
         keep = np.abs(res) < 3 * s
-    R, C = np.mgrid[0:win.shape[0], 0:win.shape[1]]
+    R, C = np.mgrid[0 : win.shape[0], 0 : win.shape[1]]
     plane = coef[0] + coef[1] * R / win.shape[0] + coef[2] * C / win.shape[1]
     flat = win / plane
     pair = bgmask[:, :-1] & bgmask[:, 1:]
@@ -379,8 +380,11 @@ class NormalSampler:
         """Blurred transmission on the fine grid u (rows = normals)."""
         p, n, t = self.pts[sel], self.nrm[sel], self.tan[sel]
         a = sigma * _GH_X
-        q = (p[:, None, None, :] + self.u[None, :, None, None] * n[:, None, None, :]
-             + a[None, None, :, None] * t[:, None, None, :])
+        q = (
+            p[:, None, None, :]
+            + self.u[None, :, None, None] * n[:, None, None, :]
+            + a[None, None, :, None] * t[:, None, None, :]
+        )
         t_o, t_c = body.chords(q.reshape(-1, 2))
         T = np.exp(-(k_o * t_o + (k_c - k_o) * t_c)).reshape(q.shape[:3]) @ _GH_W
         return ndimage.gaussian_filter1d(T, sigma / self.h, axis=1, mode="nearest") if sigma > 0 else T
@@ -513,8 +517,9 @@ class _GlobalSearch:
     def refine(self, p0, with_coat):
         lb, ub = (self.lb2, self.ub2) if with_coat else (self.lb1, self.ub1)
         p0 = np.clip(p0, np.add(lb, 1e-6), np.subtract(ub, 1e-6))
-        res = optimize.least_squares(self.glob_resid, p0, args=(with_coat,), bounds=(lb, ub),
-                                     diff_step=1e-3, max_nfev=20)
+        res = optimize.least_squares(
+            self.glob_resid, p0, args=(with_coat,), bounds=(lb, ub), diff_step=1e-3, max_nfev=20
+        )
         return 0.5 * float(res.fun @ res.fun), res.x
 
     def choose_globals(self, x1):
@@ -524,9 +529,13 @@ class _GlobalSearch:
         best = (c1, x1, False)
         if coat_hint is None or coat_hint > 0:
             kr = k_est if np.isfinite(k_est) else np.exp(x1[0])
-            cands = [(np.log(kr * fo), x1[1], np.log(np.clip(kr * fc, k_lo, k_hi)), np.log(c))
-                     for c in ([coat_hint] if coat_hint else (1.5, 4.0, 8.0))
-                     for fo in (0.1, 0.35) for fc in (0.7, 1.5) if c < s_in + 3]
+            cands = [
+                (np.log(kr * fo), x1[1], np.log(np.clip(kr * fc, k_lo, k_hi)), np.log(c))
+                for c in ([coat_hint] if coat_hint else (1.5, 4.0, 8.0))
+                for fo in (0.1, 0.35)
+                for fc in (0.7, 1.5)
+                if c < s_in + 3
+            ]
             p2 = min(cands, key=lambda p: self.cost(p, True))
             c2, x2 = self.refine(p2, True)
             ko2, kc2, cc2 = np.exp(x2[0]), np.exp(x2[2]), np.exp(x2[3])
@@ -552,8 +561,9 @@ def _outward_normals(win, pts):
     return nrm, tan
 
 
-def refine_edges(win, pts, frame, coat_hint=None, outer_iters=4, smooth_px=2.0, smooth_ab=0.0,
-                 frame_update=None, target_px=0.15):
+def refine_edges(
+    win, pts, frame, coat_hint=None, outer_iters=4, smooth_px=2.0, smooth_ab=0.0, frame_update=None, target_px=0.15
+):
     """Model-based sub-pixel silhouette along the normals (see module doc).
 
     ``smooth_px``: minimum Gaussian smoothing of the edge shifts along the arc
@@ -583,8 +593,9 @@ def refine_edges(win, pts, frame, coat_hint=None, outer_iters=4, smooth_px=2.0, 
 
     for it in range(outer_iters):
         if it == 0:  # coarse grid (single layer), then model choice (globals on a subset)
-            grid = [(np.log(k), np.log(sg)) for k in np.geomspace(k_lo * 1.01, k_hi * 0.99, 6)
-                    for sg in (0.6, 1.2, 2.2)]
+            grid = [
+                (np.log(k), np.log(sg)) for k in np.geomspace(k_lo * 1.01, k_hi * 0.99, 6) for sg in (0.6, 1.2, 2.2)
+            ]
             k_o, k_c, coat, sigma = gs.choose_globals(np.array(min(grid, key=lambda p: gs.cost(p, False))))
         elif it == 1:  # edges now close: refine the choice
             k_o, k_c, coat, sigma = gs.choose_globals(np.log([k_o, sigma]))
@@ -606,5 +617,4 @@ def refine_edges(win, pts, frame, coat_hint=None, outer_iters=4, smooth_px=2.0, 
     rms = np.sqrt((r**2).mean(1))
     off = ((moved - pts) * nrm).sum(1)
     good = (b > 0) & (off > -s_in + 2) & (off < s_out - 1) & (rms < 5 * np.median(rms))
-    return EdgeFit(moved, nrm, good, k_o, k_c, coat, sigma,
-                   float(np.median(rms)), b)
+    return EdgeFit(moved, nrm, good, k_o, k_c, coat, sigma, float(np.median(rms)), b)

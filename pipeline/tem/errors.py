@@ -1,4 +1,5 @@
 """Errors of the TEM stage: ``ValueError`` subclasses whose message names the file."""
+
 from __future__ import annotations
 
 from pipeline.errors import FileError

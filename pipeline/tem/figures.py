@@ -1,4 +1,5 @@
 """Figure of the profile stage: apex region with the detected silhouette and axis (nm)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,8 +33,14 @@ def plot_profile(image, profile, out_png, title=""):
     a = profile.apex_px
     u = profile.axis_px
     L = 1.1 * hpx
-    ax.plot([a[1] * px * 1e9, (a[1] + L * u[1]) * px * 1e9], [a[0] * px * 1e9, (a[0] + L * u[0]) * px * 1e9],
-            "--", color="tab:red", lw=1, label="axis")
+    ax.plot(
+        [a[1] * px * 1e9, (a[1] + L * u[1]) * px * 1e9],
+        [a[0] * px * 1e9, (a[0] + L * u[0]) * px * 1e9],
+        "--",
+        color="tab:red",
+        lw=1,
+        label="axis",
+    )
     ax.plot(a[1] * px * 1e9, a[0] * px * 1e9, "+", color="tab:red", ms=10)
     ax.set_xlabel("x (nm)")
     ax.set_ylabel("y (nm)")
@@ -46,8 +53,9 @@ def plot_profile(image, profile, out_png, title=""):
     ax.set_xlabel("r (nm)")
     ax.set_ylabel("z (nm)")
     ax.set_aspect("equal")
-    ax.set_title(f"profile, asymmetry {profile.asymmetry_mean * 1e9:+.2f} nm (rms {profile.asymmetry_rms * 1e9:.2f})",
-                 fontsize=9)
+    ax.set_title(
+        f"profile, asymmetry {profile.asymmetry_mean * 1e9:+.2f} nm (rms {profile.asymmetry_rms * 1e9:.2f})", fontsize=9
+    )
     fig.tight_layout()
     with h5io.atomic_output(out_png) as tmp:
         fig.savefig(tmp, dpi=120, format="png")

@@ -4,6 +4,7 @@
 Profile file layout: /image, /edge, /axis, /profile/{left,right,combined} (r, z, [flank],
 [offset_basis, normal_rz]; /profile/offset_cov), /asymmetry, /edge_model.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,8 +16,14 @@ __all__ = ["write_profile_h5", "read_profile"]
 
 def write_profile_h5(out_h5, image, profile, tip="", interval=""):
     """HDF5 layout: /image, /edge, /axis, /profile/{left,right,combined}, /asymmetry, /edge_model."""
-    with h5io.atomic_h5(out_h5, stage="tem_profiles", tip=tip, interval=interval, source=str(image.path),
-                        profile_height=profile.profile_height) as f:
+    with h5io.atomic_h5(
+        out_h5,
+        stage="tem_profiles",
+        tip=tip,
+        interval=interval,
+        source=str(image.path),
+        profile_height=profile.profile_height,
+    ) as f:
         _write_image_edge_axis(f, image, profile)
         _write_profile(f, profile)
         _write_edge_model(f, image, profile)
@@ -49,8 +56,13 @@ def _write_profile(f, profile):
     w = h5io.write_dataset
     pg = h5io.create_group(f, "profile", description="z(r), apex at z = 0, z away from the sample")
     if profile.offset_cov is not None:
-        w(pg, "offset_cov", profile.offset_cov, "m^2",
-          "covariance of the edge-offset B-spline coefficients c_k (silhouette fit, marginal)")
+        w(
+            pg,
+            "offset_cov",
+            profile.offset_cov,
+            "m^2",
+            "covariance of the edge-offset B-spline coefficients c_k (silhouette fit, marginal)",
+        )
     for which, name in (("left", "left"), ("right", "right"), ("both", "combined")):
         i = profile.flank_index(which)
         sg = h5io.create_group(pg, name)
@@ -59,8 +71,13 @@ def _write_profile(f, profile):
         if which == "both":
             w(sg, "flank", profile.flank[i].astype(np.int8), "1", "-1 left, +1 right")
         if profile.offset_basis is not None:
-            w(sg, "offset_basis", profile.offset_basis[i], "1",
-              "normal offset of each point = offset_basis @ c (c: see ../offset_cov)")
+            w(
+                sg,
+                "offset_basis",
+                profile.offset_basis[i],
+                "1",
+                "normal offset of each point = offset_basis @ c (c: see ../offset_cov)",
+            )
             w(sg, "normal_rz", profile.normal_rz[i], "1", "outward unit normal (n_r, n_z) of each point")
     g = h5io.create_group(f, "asymmetry")
     w(g, "mean", profile.asymmetry_mean, "m", "mean r_right - r_left at equal z")
@@ -80,8 +97,13 @@ def _write_edge_model(f, image, profile):
     w(g, "n_rejected", em["n_rejected"], "1", "edge points rejected")
     g.attrs["refine"] = em.get("refine", "normals")
     flags = list(em.get("global_flags", []))
-    w(g, "flags", np.array(flags, dtype=object) if flags else np.array([], dtype=object), "1",
-      "edge-model warnings (e.g. coating not identifiable)")
+    w(
+        g,
+        "flags",
+        np.array(flags, dtype=object) if flags else np.array([], dtype=object),
+        "1",
+        "edge-model warnings (e.g. coating not identifiable)",
+    )
     ct = em.get("coating_test") or {}
     if ct:
         _write_coating_test(g, ct, image.pixel_size)
@@ -101,18 +123,38 @@ def _write_coating_test(g, ct, px):
     if "note" in ct:
         g.attrs["coating_note"] = ct["note"]
     if "dchi2" in ct:
-        w(g, "coating_dchi2", ct["dchi2"], "1",
-          "chi^2(single layer) - chi^2(best coated fit); a layer is accepted above the threshold",
-          threshold=ct.get("threshold", np.nan))
+        w(
+            g,
+            "coating_dchi2",
+            ct["dchi2"],
+            "1",
+            "chi^2(single layer) - chi^2(best coated fit); a layer is accepted above the threshold",
+            threshold=ct.get("threshold", np.nan),
+        )
         w(g, "coating_test_thickness", ct["thickness_px"] * px, "m", "layer thickness of the best coated fit")
-        w(g, "coating_test_outer_shift", ct["outer_shift_px"] * px, "m",
-          "mean outward shift of the coated fit's outer edge from the single layer's")
-        w(g, "coating_test_contrast_ratio", ct["contrast_ratio"], "1",
-          "attenuation ratio outer layer / core of the best coated fit")
+        w(
+            g,
+            "coating_test_outer_shift",
+            ct["outer_shift_px"] * px,
+            "m",
+            "mean outward shift of the coated fit's outer edge from the single layer's",
+        )
+        w(
+            g,
+            "coating_test_contrast_ratio",
+            ct["contrast_ratio"],
+            "1",
+            "attenuation ratio outer layer / core of the best coated fit",
+        )
     if ct.get("ambiguous"):
-        w(g, "coating_ambiguous_shift", ct["ambiguous_shift_px"] * px, "m",
-          "largest outward edge shift of a light layer that fits within the threshold of none "
-          "(half of it is added to the edge covariance as a common offset SD)")
+        w(
+            g,
+            "coating_ambiguous_shift",
+            ct["ambiguous_shift_px"] * px,
+            "m",
+            "largest outward edge shift of a light layer that fits within the threshold of none "
+            "(half of it is added to the edge covariance as a common offset SD)",
+        )
 
 
 def read_profile(profile_h5):

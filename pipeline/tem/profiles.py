@@ -7,6 +7,7 @@ the silhouette crosses the axis; z = 0 there, increasing away from the sample;
 r = |x| measured from the axis.  Asymmetry = mean and RMS of r_right - r_left at
 equal z over the profile window.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -56,7 +57,7 @@ class TipProfile:
     def flank_index(self, which):
         """Indices of the edge points of one flank ("left", "right") or "both" within
         profile_height, sorted by z (the order of ``flank_rz``)."""
-        m = (self.z <= self.profile_height)
+        m = self.z <= self.profile_height
         if which == "left":
             m &= self.flank < 0
         elif which == "right":
@@ -71,7 +72,7 @@ class TipProfile:
 
 
 def _coating_hint(coating, px, path):
-    """"auto" -> None (detect), "none" -> 0, thickness (m or "1.5 nm") -> px."""
+    """ "auto" -> None (detect), "none" -> 0, thickness (m or "1.5 nm") -> px."""
     if coating is None or coating == "auto":
         return None
     if coating == "none":
@@ -115,9 +116,11 @@ def _window_and_contour(img, coarse, hpx, path):
             raise _fail(path, exc) from None
         frame = TipFrame(ca - origin, th)
         cont = _clip_height(cont, frame, 1.3 * hpx + 8)
-        hit = dict(bottom=r1 < H and (cont[:, 0] >= win.shape[0] - 1.5).any(),
-                   left=c0 > 0 and (cont[:, 1] <= 0.5).any(),
-                   right=c1 < W and (cont[:, 1] >= win.shape[1] - 1.5).any())
+        hit = dict(
+            bottom=r1 < H and (cont[:, 0] >= win.shape[0] - 1.5).any(),
+            left=c0 > 0 and (cont[:, 1] <= 0.5).any(),
+            right=c1 < W and (cont[:, 1] >= win.shape[1] - 1.5).any(),
+        )
         if not any(hit.values()):
             break
         for side, h in hit.items():
@@ -144,20 +147,37 @@ def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine):
     if gf is not None:
         pts = gf.points
         frame = _symmetry_frame(pts, gf.frame, hpx)
-        edge_model = dict(k_outer=gf.k_outer, k_core=gf.k_core, coat_px=gf.coat_px, sigma_px=gf.sigma_px,
-                          rms_intensity=gf.rms_intensity, n_rejected=0)
-        extra = dict(refine="global", global_flags=list(gf.flags), global_chi2_red=gf.chi2_red,
-                     global_n_pixels=gf.n_pixels, global_iterations=gf.n_iter, global_stderr=gf.stderr,
-                     global_binning=gf.binning,
-                     coating_test=gf.coating_test)
+        edge_model = dict(
+            k_outer=gf.k_outer,
+            k_core=gf.k_core,
+            coat_px=gf.coat_px,
+            sigma_px=gf.sigma_px,
+            rms_intensity=gf.rms_intensity,
+            n_rejected=0,
+        )
+        extra = dict(
+            refine="global",
+            global_flags=list(gf.flags),
+            global_chi2_red=gf.chi2_red,
+            global_n_pixels=gf.n_pixels,
+            global_iterations=gf.n_iter,
+            global_stderr=gf.stderr,
+            global_binning=gf.binning,
+            coating_test=gf.coating_test,
+        )
         uncertainty = (gf.basis, gf.cov_c, gf.normals)
     else:
-        fit = refine_edges(win, cont, frame, coat_hint=coat_hint,
-                           frame_update=lambda p: _symmetry_frame(p, frame, hpx))
+        fit = refine_edges(win, cont, frame, coat_hint=coat_hint, frame_update=lambda p: _symmetry_frame(p, frame, hpx))
         pts = fit.points[fit.good]
         frame = _symmetry_frame(pts, frame, hpx)
-        edge_model = dict(k_outer=fit.k_outer, k_core=fit.k_core, coat_px=fit.coat_px, sigma_px=fit.sigma_px,
-                          rms_intensity=fit.rms_intensity, n_rejected=int((~fit.good).sum()))
+        edge_model = dict(
+            k_outer=fit.k_outer,
+            k_core=fit.k_core,
+            coat_px=fit.coat_px,
+            sigma_px=fit.sigma_px,
+            rms_intensity=fit.rms_intensity,
+            n_rejected=int((~fit.good).sum()),
+        )
     return pts, frame, edge_model, extra, uncertainty
 
 
@@ -188,8 +208,9 @@ def _in_image(pts, frame, origin, flipped, n_rows):
     return pts_img, apex_img, axis, angle
 
 
-def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, coating="auto",
-                    refine="global") -> TipProfile:
+def extract_profile(
+    image: TemImage, orientation="auto", profile_height=20e-9, coating="auto", refine="global"
+) -> TipProfile:
     """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
 
     ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
@@ -208,8 +229,9 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
         raise _fail(path, exc) from None
     img = image.data[::-1] if flipped else image.data
     win, origin, flat, noise, cont, frame = _window_and_contour(img, coarse, hpx, path)
-    pts, frame, edge_model, extra, uncertainty = _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint,
-                                                                 refine)
+    pts, frame, edge_model, extra, uncertainty = _refined_edge(
+        win, flat, noise, cont, frame, hpx, px, coat_hint, refine
+    )
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
@@ -218,15 +240,32 @@ def extract_profile(image: TemImage, orientation="auto", profile_height=20e-9, c
     basis, cov, normal_rz = _edge_uncertainty(uncertainty, keep, x, px, frame)
     pts_img, apex_img, axis, angle = _in_image(pts, frame, origin, flipped, image.data.shape[0])
     return TipProfile(
-        pixel_size=px, pixel_size_source=image.source, orientation="up" if flipped else "down",
-        angle=float(angle), apex_px=apex_img, axis_px=axis, edge_px=pts_img,
-        x=x * px, z=z * px, flank=flank, profile_height=float(profile_height),
-        asymmetry_mean=a_mean * px, asymmetry_rms=a_rms * px,
-        edge_model=dict(k_outer_per_m=edge_model["k_outer"] / px, k_core_per_m=edge_model["k_core"] / px,
-                        coating_thickness=edge_model["coat_px"] * px, blur_sigma=edge_model["sigma_px"] * px,
-                        rms_intensity=edge_model["rms_intensity"], n_points=int(len(pts)),
-                        n_rejected=edge_model["n_rejected"], **extra),
-        offset_basis=basis, offset_cov=cov, normal_rz=normal_rz,
+        pixel_size=px,
+        pixel_size_source=image.source,
+        orientation="up" if flipped else "down",
+        angle=float(angle),
+        apex_px=apex_img,
+        axis_px=axis,
+        edge_px=pts_img,
+        x=x * px,
+        z=z * px,
+        flank=flank,
+        profile_height=float(profile_height),
+        asymmetry_mean=a_mean * px,
+        asymmetry_rms=a_rms * px,
+        edge_model=dict(
+            k_outer_per_m=edge_model["k_outer"] / px,
+            k_core_per_m=edge_model["k_core"] / px,
+            coating_thickness=edge_model["coat_px"] * px,
+            blur_sigma=edge_model["sigma_px"] * px,
+            rms_intensity=edge_model["rms_intensity"],
+            n_points=int(len(pts)),
+            n_rejected=edge_model["n_rejected"],
+            **extra,
+        ),
+        offset_basis=basis,
+        offset_cov=cov,
+        normal_rz=normal_rz,
     )
 
 
@@ -248,7 +287,7 @@ def _clip_height(cont, frame, hmax):
     hi = i0
     while hi < len(z) - 1 and inside[hi + 1]:
         hi += 1
-    return cont[lo: hi + 1]
+    return cont[lo : hi + 1]
 
 
 def _check_border(cont, shape, frame, hpx, path, r0, c0, H, W):

@@ -6,6 +6,7 @@ t(x, z) = 2 sqrt(r_o(z)^2 - x^2), which falls to zero at the silhouette with a
 square-root profile.  Transmission T = exp(-t_coat/lambda_coat - t_core/lambda_core).
 These helpers are shared by the synthetic image generator and by the edge model.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -44,7 +45,7 @@ def eroded_radius(z, r_outer, thickness):
     step = max(1, 4_000_000 // offs.size)  # bounded memory
     for i0 in range(0, r.size, step):
         idx = np.arange(i0, min(r.size, i0 + step))[:, None] + (offs + k)[None, :]
-        out[i0:i0 + step] = (pad[idx] - cap[None, :]).min(axis=1)
+        out[i0 : i0 + step] = (pad[idx] - cap[None, :]).min(axis=1)
     out[~np.isfinite(out)] = -1.0
     return out
 
@@ -87,5 +88,5 @@ def core_radius_sq_table(rho_sq, dz, thickness):
         i = np.minimum(f.astype(np.intp), n - 2)
         w = f - i
         r = np.sqrt(np.maximum(rho_sq[i] * (1.0 - w) + rho_sq[i + 1] * w, 0.0))
-        out[j0:j0 + step] = (r - cap[None, :]).min(axis=1)
+        out[j0 : j0 + step] = (r - cap[None, :]).min(axis=1)
     return np.square(np.maximum(out, 0.0))

@@ -12,6 +12,7 @@ calibration.  Different x and y calibrations are corrected by resampling the
 coarser axis onto the finer pixel (up to a ratio of 2); anything else is
 rejected with a message naming the file.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -26,9 +27,20 @@ __all__ = ["TemImage", "read_tem_image", "unit_to_metres"]
 
 _MAX_TEM_PIXEL = 1e-6  # m; larger "calibrations" are DPI defaults (72 dpi = 0.35 mm)
 _SQUARE_TOL = 5e-3  # relative x/y mismatch still taken as square
-_UNIT_ALIASES = {"micron": "um", "microns": "um", "µm": "um", "μm": "um", "\\u00B5m": "um",
-                 "a": "angstrom", "å": "angstrom", "ang": "angstrom", "nanometer": "nm",
-                 "nanometers": "nm", "meter": "m", "metre": "m"}
+_UNIT_ALIASES = {
+    "micron": "um",
+    "microns": "um",
+    "µm": "um",
+    "μm": "um",
+    "\\u00B5m": "um",
+    "a": "angstrom",
+    "å": "angstrom",
+    "ang": "angstrom",
+    "nanometer": "nm",
+    "nanometers": "nm",
+    "meter": "m",
+    "metre": "m",
+}
 
 
 @dataclass
@@ -107,19 +119,27 @@ def read_tem_image(path, pixel_size=None, check_plausible=True) -> TemImage:
     data, note = _checked_data(data, path)
 
     if check_plausible and cal is not None and not _plausible(min(cal)) and pixel_size is not None:
-        note += (f"the file's calibration ({min(cal) * 1e9:.4g} nm per pixel) is implausible for a tip image: the tip "
-                 "YAML's tem.pixel_size is used instead; ")
+        note += (
+            f"the file's calibration ({min(cal) * 1e9:.4g} nm per pixel) is implausible for a tip image: the tip "
+            "YAML's tem.pixel_size is used instead; "
+        )
         cal = None
     if cal is None:
         if pixel_size is None:
-            raise PixelSizeError(path, "no pixel size: the file carries no length calibration "
-                                       "and none was given (set tem.pixel_size in the tip YAML)")
+            raise PixelSizeError(
+                path,
+                "no pixel size: the file carries no length calibration "
+                "and none was given (set tem.pixel_size in the tip YAML)",
+            )
         px = _yaml_pixel_size(pixel_size, path, check_plausible)
         return TemImage(data, px, "tip YAML", str(path), note.rstrip("; "))
     px_y, px_x = cal
     if check_plausible and not _plausible(min(px_y, px_x)):
-        raise PixelSizeError(path, _implausible(min(px_y, px_x), f"the file's calibration ({source})") +
-                             "; give tem.pixel_size to override it")
+        raise PixelSizeError(
+            path,
+            _implausible(min(px_y, px_x), f"the file's calibration ({source})")
+            + "; give tem.pixel_size to override it",
+        )
     if pixel_size is not None:
         note += "tip YAML pixel_size ignored: the file carries a calibration"
     data, px, extra = _square_pixels(data, px_y, px_x, path)
@@ -135,16 +155,21 @@ def _plausible(px: float) -> bool:
 
 def _implausible(px: float, what: str) -> str:
     hint = ""
-    for factor, cause in ((1000.0, "nm written as um, or pm as nm"), (25.4, "a millimetre read as an inch"),
-                          (10.0, "Angstrom read as nm")):
+    for factor, cause in (
+        (1000.0, "nm written as um, or pm as nm"),
+        (25.4, "a millimetre read as an inch"),
+        (10.0, "Angstrom read as nm"),
+    ):
         for f in (factor, 1.0 / factor):
             if _plausible(px / f):
                 hint = f" ({f:g}x too {'large' if f > 1 else 'small'}? {cause})"
                 break
         if hint:
             break
-    return (f"this pixel size ({px * 1e9:.4g} nm) from {what} is implausible for a TEM image of a tip apex "
-            f"(expected {PLAUSIBLE_PIXEL[0] * 1e9:g}-{PLAUSIBLE_PIXEL[1] * 1e9:g} nm){hint}")
+    return (
+        f"this pixel size ({px * 1e9:.4g} nm) from {what} is implausible for a TEM image of a tip apex "
+        f"(expected {PLAUSIBLE_PIXEL[0] * 1e9:g}-{PLAUSIBLE_PIXEL[1] * 1e9:g} nm){hint}"
+    )
 
 
 def _square_pixels(data, px_y, px_x, path):
@@ -152,8 +177,11 @@ def _square_pixels(data, px_y, px_x, path):
         return data, 0.5 * (px_x + px_y), ""
     ratio = max(px_x, px_y) / min(px_x, px_y)
     if ratio > 2.0:
-        raise PixelSizeError(path, f"non-square pixels ({px_x:.4g} m x {px_y:.4g} m, ratio {ratio:.2f}) "
-                                   "cannot be corrected reliably; resample the image to square pixels")
+        raise PixelSizeError(
+            path,
+            f"non-square pixels ({px_x:.4g} m x {px_y:.4g} m, ratio {ratio:.2f}) "
+            "cannot be corrected reliably; resample the image to square pixels",
+        )
     import cv2
 
     px = min(px_x, px_y)
@@ -300,8 +328,9 @@ def _read_dm(path):
     try:
         cal = tuple(float(a["scale"]) * unit_to_metres(u, str(path)) for a, u in zip((ay, ax), units))
     except QuantityError:
-        raise PixelSizeError(path, f"{kind.upper()} calibration units {units} are not lengths "
-                                   "(diffraction pattern or spectrum?)") from None
+        raise PixelSizeError(
+            path, f"{kind.upper()} calibration units {units} are not lengths (diffraction pattern or spectrum?)"
+        ) from None
     if min(cal) <= 0:
         raise PixelSizeError(path, f"{kind.upper()} calibration {cal} is not positive")
     return data, cal, f"{kind} calibration"

@@ -54,6 +54,7 @@ Modules: ``silhouette_model`` (the forward model: body, image, binning), ``silho
 (Levenberg-Marquardt, Jacobians, polish), ``coating_search`` (the coated model's starts and the
 layer decision) and this one (the public fit :func:`fit_silhouette` and its result).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -98,8 +99,9 @@ class GlobalFit:
     binning: int = 1
 
 
-def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, coat_hint=None,
-                   knot_nm=None, max_iter=25, binning=None) -> GlobalFit:
+def fit_silhouette(
+    flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, coat_hint=None, knot_nm=None, max_iter=25, binning=None
+) -> GlobalFit:
     """Fit the silhouette model (module doc) to ``flat`` (window with the background
     flattened to 1, tip pointing down), starting from ``contour`` (iso-line outside the
     surface, window px) in ``frame``; ``hpx`` profile height (px), ``noise`` background
@@ -127,8 +129,10 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
         # a given layer thicker than the fitted band: its core is outside the fitted pixels,
         # where the outer layer alone is seen (a thick DLC coating); a coated model would put
         # a core edge where the image has none
-        coat_test["note"] = (f"the given layer ({coat_hint:.1f} px) is thicker than the fitted band "
-                             f"({max_coat:.0f} px inside the edge): the outer layer is fitted alone")
+        coat_test["note"] = (
+            f"the given layer ({coat_hint:.1f} px) is thicker than the fitted band "
+            f"({max_coat:.0f} px inside the edge): the outer layer is fitted alone"
+        )
         coat_hint = 0.0
     if coat_hint is None or coat_hint > 0:
         # 3) coated model: search over the layer thickness, then LM from the best start
@@ -147,10 +151,18 @@ def fit_silhouette(flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, 
 def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b):
     """``fit_silhouette`` on b x b blocks, its result in the pixels of ``flat``."""
     off = 0.5 * (b - 1)
-    gf = fit_silhouette(_bin(np.asarray(flat, float), b), (np.asarray(contour) - off) / b,
-                        TipFrame((frame.apex - off) / b, frame.angle), hpx / b, noise / b,
-                        pixel_size * b, None if coat_hint is None else coat_hint / b, knot_nm, max_iter,
-                        binning=1)
+    gf = fit_silhouette(
+        _bin(np.asarray(flat, float), b),
+        (np.asarray(contour) - off) / b,
+        TipFrame((frame.apex - off) / b, frame.angle),
+        hpx / b,
+        noise / b,
+        pixel_size * b,
+        None if coat_hint is None else coat_hint / b,
+        knot_nm,
+        max_iter,
+        binning=1,
+    )
     gf.points = gf.points * b + off
     gf.frame = TipFrame(gf.frame.apex * b + off, gf.frame.angle)
     gf.cov_c = gf.cov_c * b**2
@@ -219,8 +231,24 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None)
     if hit.size:
         flags.append(f"edge offset hit its bound (+-6 px) at {hit.size} of {K} knots")
     rms = float(np.sqrt(np.mean((st.res / prob.w) ** 2)))
-    return GlobalFit(pts, nrm, basis, cov_c, prob.frame, float(sigma), float(k_o), float(k_c), float(coat), rms,
-                     chi2, int(prob.idx.size), int(n_it), stderr, flags, coat_test)
+    return GlobalFit(
+        pts,
+        nrm,
+        basis,
+        cov_c,
+        prob.frame,
+        float(sigma),
+        float(k_o),
+        float(k_c),
+        float(coat),
+        rms,
+        chi2,
+        int(prob.idx.size),
+        int(n_it),
+        stderr,
+        flags,
+        coat_test,
+    )
 
 
 def _covariances(prob, fitter, st, JTJ, names, coat_test, pixel_size):
@@ -246,11 +274,13 @@ def _covariances(prob, fitter, st, JTJ, names, coat_test, pixel_size):
         shift = coat_test["ambiguous_shift_px"]
         cov_c = cov_c + (0.5 * shift) ** 2 * np.ones((K, K))
         nm = 1e9 * (pixel_size or float("nan"))
-        flags.append(f"coating ambiguous: a light layer {coat_test['ambiguous_thickness_px'] * nm:.2f} nm thick changes "
-                     f"chi^2 by {-coat_test['ambiguous_dchi2']:+.1f} (accepted below -{COAT_DCHI2:g}, excluded above "
-                     f"+{COAT_DCHI2:g}); "
-                     f"the edge may lie up to {shift * nm:.2f} nm further out; edge covariance widened "
-                     f"(set tem.coating if the layer is known)")
+        flags.append(
+            f"coating ambiguous: a light layer {coat_test['ambiguous_thickness_px'] * nm:.2f} nm thick changes "
+            f"chi^2 by {-coat_test['ambiguous_dchi2']:+.1f} (accepted below -{COAT_DCHI2:g}, excluded above "
+            f"+{COAT_DCHI2:g}); "
+            f"the edge may lie up to {shift * nm:.2f} nm further out; edge covariance widened "
+            f"(set tem.coating if the layer is known)"
+        )
     if fitter.coated:
         if stderr.get("log_coat", 0) > 0.3 or stderr.get("log_k_c", 0) > 0.3:
             flags.append(f"coating not identifiable (rel. s.e. thickness {stderr.get('log_coat', np.nan):.2f})")
@@ -272,5 +302,7 @@ def _outer_silhouette(prob, c, hpx):
     basis = _bspline(Sg[:, None] / prob.knot - prob.kc[None, :])
     nxo, nzo = np.interp(Sg, S, prob.nx), np.interp(Sg, S, prob.nz)
     pts = prob.frame.to_image(xo, zo)
-    nrm = np.column_stack([nxo * prob.frame.v[0] + nzo * prob.frame.u[0], nxo * prob.frame.v[1] + nzo * prob.frame.u[1]])
+    nrm = np.column_stack(
+        [nxo * prob.frame.v[0] + nzo * prob.frame.u[0], nxo * prob.frame.v[1] + nzo * prob.frame.u[1]]
+    )
     return pts, nrm, basis

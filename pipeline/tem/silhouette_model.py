@@ -1,6 +1,7 @@
 """Forward model of the silhouette fit (``pipeline.tem.silhouette_fit``, its doc): the meridian's
 B-spline offsets, the body's cross-section tables, the Beer-Lambert image of the body with pixel
 integration and blur, and the binning of the image."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,6 +24,8 @@ def _sub_offsets(m):
     """(drow, dcol) of m x m sub-samples of a pixel (centre at 0)."""
     sub = (np.arange(m) + 0.5) / m - 0.5
     return np.column_stack([np.repeat(sub, m), np.tile(sub, m)])
+
+
 KNOT_NM = 1.2  # knot spacing of the edge-offset spline (nm)
 
 
@@ -229,8 +232,9 @@ class _Problem:
         self.kc = np.arange(k_lo, k_hi + 1)
         self.K = self.kc.size
         idx, val = self.spline_rows(S)
-        self.Bc = sparse.csr_matrix((val.ravel(), (np.repeat(np.arange(S.size), 4), idx.ravel())),
-                                    shape=(S.size, self.K)).toarray()
+        self.Bc = sparse.csr_matrix(
+            (val.ravel(), (np.repeat(np.arange(S.size), 4), idx.ravel())), shape=(S.size, self.K)
+        ).toarray()
         self.map_c = None
 
     def rebase(self, c):
@@ -279,7 +283,8 @@ class _Problem:
             redo = np.nonzero(((k == 0) & (j > 0)) | ((k == 2 * w) & (j < xs.size - 1)))[0]
             if redo.size:
                 d[redo], j[redo] = cKDTree(np.column_stack([xs, zs])).query(
-                    np.column_stack([self.px_res[redo], self.pz_res[redo]]))
+                    np.column_stack([self.px_res[redo], self.pz_res[redo]])
+                )
         self._j_res, self._j_ref = j, self.S
         self.dist_need = np.full(self.need.size, np.inf)
         self.dist_need[self.res_in_need] = d
@@ -291,8 +296,7 @@ class _Problem:
 
     def map_stale(self, c, coat):
         # B-splines are >= 0 and sum to 1: no curve point moved more than max |dc|
-        return (self.map_c is None or np.max(np.abs(c - self.map_c)) > 0.6
-                or abs(coat - self.map_coat) > 0.6)
+        return self.map_c is None or np.max(np.abs(c - self.map_c)) > 0.6 or abs(coat - self.map_coat) > 0.6
 
     # ------------------------------------------------------------------ forward model
     def chords(self, c, coat, sub=None):

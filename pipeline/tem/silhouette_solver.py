@@ -1,5 +1,6 @@
 """Solver of the silhouette fit: Levenberg-Marquardt over the forward model's parameters with the
 soft monotone-flank penalty, its Jacobians (local translation, exact) and the exact Gauss-Newton polish."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -102,9 +103,11 @@ class _Fitter:
         models = [lambda e: p.blurred(st.T, sigma * np.exp(e))]
         names = ["log_sigma"]
         if self.coated:
-            models += [lambda e: p.blurred(p.transmission(st.ch, k_o * np.exp(e), k_c), sigma),
-                       lambda e: p.blurred(p.transmission(st.ch, k_o, k_c * np.exp(e)), sigma),
-                       lambda e: p.blurred(p.transmission(p.chords(c, coat * np.exp(e)), k_o, k_c), sigma)]
+            models += [
+                lambda e: p.blurred(p.transmission(st.ch, k_o * np.exp(e), k_c), sigma),
+                lambda e: p.blurred(p.transmission(st.ch, k_o, k_c * np.exp(e)), sigma),
+                lambda e: p.blurred(p.transmission(p.chords(c, coat * np.exp(e)), k_o, k_c), sigma),
+            ]
             names += ["log_k_o", "log_k_c", "log_coat"]
         else:
             models.append(lambda e: p.blurred(p.transmission(st.ch, k_o * np.exp(e), k_o * np.exp(e)), sigma))
@@ -273,11 +276,13 @@ class _Fitter:
             JTJ, grad, names, nsh, ng = self.normal_equations(st, shape_mode)
             improved, dc, dv = False, 0.0, np.zeros_like(v)
             # parameters at a bound whose descent direction points outwards are held fixed
-            pv = np.concatenate([st.v[:K] if shape_mode == "full" else st.v[:1] if nsh else [], st.v[K:K + ng]])
-            plb = np.concatenate([lb[:nsh], lb[K:K + ng]])
-            pub = np.concatenate([ub[:nsh], ub[K:K + ng]])
+            pv = np.concatenate([st.v[:K] if shape_mode == "full" else st.v[:1] if nsh else [], st.v[K : K + ng]])
+            plb = np.concatenate([lb[:nsh], lb[K : K + ng]])
+            pub = np.concatenate([ub[:nsh], ub[K : K + ng]])
             held = np.zeros(grad.size, bool)
-            held[: nsh + ng] = ((pv <= plb + 1e-9) & (grad[: nsh + ng] > 0)) | ((pv >= pub - 1e-9) & (grad[: nsh + ng] < 0))
+            held[: nsh + ng] = ((pv <= plb + 1e-9) & (grad[: nsh + ng] > 0)) | (
+                (pv >= pub - 1e-9) & (grad[: nsh + ng] < 0)
+            )
             for _ in range(6):
                 A = JTJ + lam * np.diag(np.diag(JTJ) + 1e-12)
                 A[held, :] = 0.0
@@ -290,7 +295,7 @@ class _Fitter:
                     continue
                 dv = np.zeros_like(st.v)
                 dv[:K] = step[:K] if shape_mode == "full" else (step[0] if nsh else 0.0)
-                dv[K:K + ng] = step[nsh:]
+                dv[K : K + ng] = step[nsh:]
                 dv *= min(1.0, float(np.min(max_step / (np.abs(dv) + 1e-300))))
                 vn = np.clip(st.v + dv, lb, ub)
                 sn = self.evaluate(vn)

@@ -1,4 +1,5 @@
 """Stage entry point: TEM image -> profile HDF5 + overlay figure."""
+
 from __future__ import annotations
 
 from pipeline.tem.figures import plot_profile
@@ -9,8 +10,19 @@ from pipeline.tem.reading import read_tem_image
 __all__ = ["run_profiles", "write_profile_h5"]
 
 
-def run_profiles(image_path, out_h5, out_png, *, pixel_size=None, orientation="auto", tip="", interval="",
-                 profile_height=20e-9, coating="auto", refine="global") -> None:
+def run_profiles(
+    image_path,
+    out_h5,
+    out_png,
+    *,
+    pixel_size=None,
+    orientation="auto",
+    tip="",
+    interval="",
+    profile_height=20e-9,
+    coating="auto",
+    refine="global",
+) -> None:
     """Read ``image_path``, extract the apex profile, write ``out_h5`` and ``out_png`` atomically.
 
     pixel_size: m (used only if the file has no calibration); orientation: auto|down|up;
@@ -21,7 +33,8 @@ def run_profiles(image_path, out_h5, out_png, *, pixel_size=None, orientation="a
     Raises ValueError subclasses (pipeline.tem.errors) naming the file.
     """
     image = read_tem_image(image_path, pixel_size)
-    profile = extract_profile(image, orientation=orientation, profile_height=profile_height, coating=coating,
-                              refine=refine)
+    profile = extract_profile(
+        image, orientation=orientation, profile_height=profile_height, coating=coating, refine=refine
+    )
     write_profile_h5(out_h5, image, profile, tip=tip, interval=interval)
     plot_profile(image, profile, out_png, title=f"{tip} {interval}".strip())

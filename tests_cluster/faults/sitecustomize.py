@@ -9,6 +9,7 @@ WEAR_FAULT = "<action>:<stage>:<tip>:<interval>", e.g. "sleep:profiles:tipA_DLC:
 
 Nothing in the pipeline knows about it; the stage then runs as usual if it is still alive.
 """
+
 import os
 import sys
 
@@ -17,7 +18,7 @@ def _matches(spec: str) -> bool:
     """Is this process `python -m pipeline <stage> --tip-config .../<tip>.yaml --interval <interval>`?"""
     _, stage, tip, interval = spec.split(":")
     argv = sys.orig_argv
-    if "-m" not in argv or argv[argv.index("-m") + 1:argv.index("-m") + 3] != ["pipeline", stage]:
+    if "-m" not in argv or argv[argv.index("-m") + 1 : argv.index("-m") + 3] != ["pipeline", stage]:
         return False
     if not any(a.endswith(f"/{tip}.yaml") for a in argv):
         return False
@@ -29,8 +30,11 @@ if _spec and _matches(_spec):
     import time
 
     action = _spec.split(":")[0]
-    print(f"fault injection ({_spec}) in pid {os.getpid()} SLURM_JOB_ID={os.environ.get('SLURM_JOB_ID')}",
-          file=sys.stderr, flush=True)
+    print(
+        f"fault injection ({_spec}) in pid {os.getpid()} SLURM_JOB_ID={os.environ.get('SLURM_JOB_ID')}",
+        file=sys.stderr,
+        flush=True,
+    )
     if action == "sleep":
         time.sleep(float(os.environ.get("WEAR_FAULT_SECONDS", "600")))
     elif action == "hog":
