@@ -400,3 +400,29 @@ def test_chunked_monte_carlo_gls_equals_one_pass():
     np.testing.assert_allclose(m7, m1, rtol=1e-12)
     np.testing.assert_allclose(c7, c1, rtol=1e-9, atol=1e-9)  # chi2 of O(1..100): a difference of squares
     assert np.array_equal(np.isfinite(c7), np.isfinite(c1))
+
+
+def test_jackknife_over_intervals_widens_where_one_interval_is_wrong():
+    """Straight lines ln W_A = ln W + s_i ln(h / h0) (a flat reference, s = 0, and four worn
+    intervals): consistent lines give a leave-one-out spread of ln h of ~0; a reference 10 % off
+    moves the estimate, and the interval of h widened by 1.96 jackknife SDs holds the true h0 again
+    (random effects alone leave it outside: the spread of the estimate is far below the error)."""
+    from pipeline.adhesion_range.gls import min_chi2, precision
+    from pipeline.adhesion_range.inconsistency import _cover_jackknife, leave_one_out_spread
+
+    x = np.log(np.geomspace(1e-9, 10e-9, 200))
+    x0, m0 = np.log(4.5e-9), np.log(0.08)
+    slopes = np.array([0.0, -0.3, -0.5, -0.65, -0.75])
+    sd = np.array([0.01, 0.03, 0.03, 0.03, 0.03])  # ln W_A uncertainties
+    C = np.broadcast_to(np.diag(sd**2), (x.size, 5, 5)).copy()
+    Yc = m0 + slopes[None, :] * (x[:, None] - x0)
+    assert leave_one_out_spread(x, Yc, C, 0.0, x0) < 1e-3
+    Yw = Yc.copy()
+    Yw[:, 0] += np.log(1.1)  # the reference 10 % high
+    chi2, xs, _, edge = min_chi2(x, Yw, precision(C))
+    assert edge == 0 and abs(xs - x0) > 0.1  # h off by > 10 %
+    jk = leave_one_out_spread(x, Yw, C, 0.0, xs)
+    g = {"h": float(np.exp(xs)), "h_pcts": np.exp(xs + np.array([-0.02, -0.01, 0.0, 0.01, 0.02]))}
+    _cover_jackknife(g, x, jk)
+    assert g["h_pcts"][0] <= np.exp(x0) <= g["h_pcts"][-1]
+    assert g["h_pcts"][2] == np.exp(xs)  # the median stays
