@@ -173,6 +173,14 @@ def _write_global(gl, gg: dict, ref, h) -> None:
     if "h_pcts_unscaled" in gg:
         write_dataset(g, "h_pcts_unscaled", gg["h_pcts_unscaled"], "m", "h percentiles before the widening")
         write_dataset(g, "W_pcts_unscaled", gg["W_pcts_unscaled"], "J/m^2", "W_A percentiles before the widening")
+    if "h_jackknife_rel_sd" in gg:
+        write_dataset(
+            g,
+            "h_jackknife_rel_sd",
+            gg["h_jackknife_rel_sd"],
+            "1",
+            "jackknife SD of ln h over the fits leaving one interval out (the interval of h holds +-1.96 of it)",
+        )
     if "h_unscaled" in gg:
         write_dataset(g, "h_unscaled", gg["h_unscaled"], "m", "global h without the between-interval scatter")
         write_dataset(g, "W_A_unscaled", gg["W_A_unscaled"], "J/m^2", "global W_A without it")
