@@ -119,10 +119,15 @@ def random_effects_if_inconsistent(g, x, Yc, Ys, C):
     g["note"] += (
         f"{_verdict(g)}: a between-interval scatter of {100 * g['tau']:.1f} % in W_A was added to every interval "
         f"(random effects), which moved h from {g['h_unscaled'] * 1e9:.3g} to {g['h'] * 1e9:.3g} nm and widened the "
-        f"95 % interval of h by {g['ci_widening_h']:.2f}x and of W_A by {g['ci_widening_W']:.2f}x"
         + (
-            f" (h's interval holds +-{100 * JACKKNIFE_Z * jk:.0f} %, the spread of the estimates without any one "
-            "interval: the disagreement may be one interval's). "
+            f"95 % interval of h by {g['ci_widening_h']:.2f}x"
+            if np.isfinite(g["ci_widening_h"])
+            else "95 % interval of h until it reaches the end of the h grid (open)"
+        )
+        + f" and of W_A by {g['ci_widening_W']:.2f}x"
+        + (
+            f" (h's interval holds ln h +- {JACKKNIFE_Z * jk:.2f}, {JACKKNIFE_Z:g} x the jackknife spread of the "
+            "estimates without any one interval: the disagreement may be one interval's). "
             if np.isfinite(jk)
             else ". "
         )
