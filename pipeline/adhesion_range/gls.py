@@ -13,45 +13,32 @@ def sample_covariances(Y, chunk=None):
     """Per-h covariance (H, I, I) of Y (S, H, I) over the samples with all I finite at that h
     (vectorised; NaN where fewer than max(MIN_SAMPLES_FOR_COV, I + 2) samples are).
 
-    More than ``chunk`` samples (default ``SAMPLE_CHUNK``) are summed chunk by chunk, two passes
-    (mean, then the centred products), so that the memory does not grow with the Monte Carlo."""
+    The samples are summed ``chunk`` (default ``SAMPLE_CHUNK``) at a time, in two passes (mean,
+    then the centred products), so that the memory does not grow with the Monte Carlo."""
     S, H, I = Y.shape
     chunk = SAMPLE_CHUNK if chunk is None else int(chunk)
     ok = np.all(np.isfinite(Y), axis=2)  # (S, H)
     n = ok.sum(axis=0)
-    if S <= chunk:
-        Yz = np.where(ok[..., None], Y, 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mean = Yz.sum(axis=0) / n[:, None]
-        return _centred_products(Yz, ok, mean, n, I)
-    total = np.zeros((H, I))
-    for a in range(0, S, chunk):
-        total += np.where(ok[a : a + chunk, :, None], Y[a : a + chunk], 0.0).sum(axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mean = total / n[:, None]
-    C = np.zeros((H, I, I))
-    for a in range(0, S, chunk):
-        C += _centred_products(
-            np.where(ok[a : a + chunk, :, None], Y[a : a + chunk], 0.0), ok[a : a + chunk], mean, None, I
-        )
-    with np.errstate(divide="ignore", invalid="ignore"):
-        C /= (n - 1)[:, None, None]
-    C[n < max(MIN_SAMPLES_FOR_COV, I + 2)] = np.nan
-    return C
 
+    def chunks():  # (samples with the non-finite rows zeroed, their finite mask), chunk by chunk
+        for a in range(0, S, chunk):
+            yield np.where(ok[a : a + chunk, :, None], Y[a : a + chunk], 0.0), ok[a : a + chunk]
 
-def _centred_products(Yz, ok, mean, n, I):
-    """sum over samples of (y - mean)(y - mean)^T per h, divided by n - 1 when ``n`` is given."""
-    with np.errstate(invalid="ignore"):
-        D = np.where(ok[..., None], Yz - mean[None], 0.0)
-    Dh = np.moveaxis(D, 0, 1)  # (H, S, I): one batched matrix product per h
-    C = np.matmul(np.swapaxes(Dh, 1, 2), Dh)
-    if n is None:
-        return C
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = sum(Yz.sum(axis=0) for Yz, _ in chunks()) / n[:, None]
+    C = sum(_centred_products(Yz, okc, mean) for Yz, okc in chunks())
     with np.errstate(divide="ignore", invalid="ignore"):
         C = C / (n - 1)[:, None, None]
     C[n < max(MIN_SAMPLES_FOR_COV, I + 2)] = np.nan
     return C
+
+
+def _centred_products(Yz, ok, mean):
+    """Sum over samples of (y - mean)(y - mean)^T per h, (H, I, I)."""
+    with np.errstate(invalid="ignore"):
+        D = np.where(ok[..., None], Yz - mean[None], 0.0)
+    Dh = np.moveaxis(D, 0, 1)  # (H, S, I): one batched matrix product per h
+    return np.matmul(np.swapaxes(Dh, 1, 2), Dh)
 
 
 def precision(C, ridge=1e-10, tau2=0.0):
