@@ -10,6 +10,7 @@ Public API
 pulloff_nd(n, Lambda, potential="dugdale", model="mdn", exact=False)
 pulloff_force(n, Q, E_star, W, h, potential="dugdale", model="mdn", exact=False)
 work_of_adhesion(F_p, n, Q, E_star, h, potential="dugdale", model="mdn", exact=False)
+work_of_adhesion_and_regime(...): the same and, from the same solve, where the rigid solution was used
 lambda_from_g(G, n, potential="dugdale", model="mdn", exact=False)
 model_used(n, Q, E_star, h, W=None, F_p=None, potential="dugdale")
     models: "rigid", "mdn" (Dugdale), "elastic" (any law), "auto" (rigid below rigid_boundary(n, law),
@@ -41,6 +42,7 @@ from .api import (
     pulloff_with_model,
     rigid_boundary,
     work_of_adhesion,
+    work_of_adhesion_and_regime,
     work_of_adhesion_with_model,
 )
 from .boundary import lambda_boundary, lambda_boundary_solved, rigid_error
@@ -88,6 +90,7 @@ __all__ = [
     "build_table",
     "pulloff_with_model",
     "work_of_adhesion_with_model",
+    "work_of_adhesion_and_regime",
     "rigid_boundary",
     "elastic_pulloff",
     "elastic_path",
