@@ -34,10 +34,23 @@ class LawCurves:
         self._cache = {}
 
     def __call__(self, nm: str):
-        if nm not in self._cache:
+        if self._cache.get(nm, (None, None))[1] is None:  # not yet, or released by stacked_samples
             d = self._inv["intervals"][nm]["laws"][self._law]
             self._cache[nm] = (ln_positive(d["W_A"]), self._ln_samples(d["W_A_samples"]))
         return self._cache[nm]
+
+    def stacked_samples(self, names):
+        """The sampled ln W_A(h) of the intervals ``names`` as one array (S, H, I); each interval's
+        own copy is released as it is moved in (only the central curves stay cached), so that the
+        samples are held once."""
+        out = None
+        for i, nm in enumerate(names):
+            yc, ys = self(nm)
+            if out is None:
+                out = np.empty((*ys.shape, len(names)))
+            out[..., i] = ys
+            self._cache[nm] = (yc, None)
+        return out
 
     def _ln_samples(self, samples):
         """ln W_A of the samples on the full h grid, ``ROW_CHUNK`` samples at a time."""

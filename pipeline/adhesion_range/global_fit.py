@@ -50,7 +50,7 @@ def global_estimate(curves: LawCurves, order: list, intervals: dict, h, inconsis
         g["note"] += "no worn interval constrains h; W_A from the reference only"
         return g
     Yc = np.stack([curves(nm)[0] for nm in used], axis=-1)  # (H, I)
-    Ys = np.stack([curves(nm)[1] for nm in used], axis=-1)  # (S, H, I)
+    Ys = curves.stacked_samples(used)  # (S, H, I)
     C = sample_covariances(Ys)
     P = precision(C)
     mc, chic = gls_chi2(Yc, P)
