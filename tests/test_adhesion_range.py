@@ -402,6 +402,43 @@ def test_chunked_monte_carlo_gls_equals_one_pass():
     assert np.array_equal(np.isfinite(c7), np.isfinite(c1))
 
 
+def test_per_sample_minima_in_chunks_equal_the_whole_chi2_surface():
+    """``sample_minima`` keeps only each sample's minimum (memory S, not S x H): chunk by chunk,
+    with and without the random-effects offsets, it equals the argmin of the whole chi^2(h) surface
+    of every sample."""
+    from pipeline.adhesion_range.gls import argmin_refined, precision, sample_covariances, sample_minima
+
+    rng = np.random.default_rng(12)
+    x = np.linspace(-1.0, 1.0, 9)
+    Y = rng.normal(size=(1000, 9, 4)) * 0.1 + np.outer(x, [0.5, -0.5, 0.2, 0.0])
+    Y[rng.random(Y.shape) < 0.03] = np.nan
+    P = precision(sample_covariances(Y))
+    eps = 0.05 * rng.standard_normal((1000, 1, 4))
+    for offsets in (None, eps):
+        Yo = Y if offsets is None else Y + offsets
+        m, c = gls_chi2(Yo, P, chunk=10**6)
+        xs, ms, _, edge = argmin_refined(x, c, m)
+        for chunk in (77, 10**6):
+            got = sample_minima(x, Y, P, offsets=offsets, chunk=chunk)
+            for a, b in zip(got, (xs, ms, edge)):
+                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+
+
+def test_stage_5_reads_the_samples_per_law_as_the_whole_file(tmp_path):
+    """Stage 5 interpolates each law's samples when it analyses it (``samples_on_grid=False``):
+    the same curves as ``load_inversion`` interpolating every law at once."""
+    from pipeline.inversion.io import samples_on_h_grid
+
+    _, inv_path, _ = _case(tmp_path, **CASES["tipB_Si"], laws=("dugdale", "lj"), mc=300)
+    whole, lazy = load_inversion(inv_path), load_inversion(inv_path, samples_on_grid=False)
+    assert lazy["intervals"]["s020"]["laws"]["lj"]["W_A_samples"].shape[1] == lazy["h_mc"].size
+    for nm in whole["order"]:
+        for law in whole["laws"]:
+            a = whole["intervals"][nm]["laws"][law]["W_A_samples"]
+            b = samples_on_h_grid(lazy, lazy["intervals"][nm]["laws"][law]["W_A_samples"])
+            assert np.array_equal(a, b, equal_nan=True)
+
+
 def test_jackknife_over_intervals_widens_where_one_interval_is_wrong():
     """Straight lines ln W_A = ln W + s_i ln(h / h0) (a flat reference, s = 0, and four worn
     intervals): consistent lines give a leave-one-out spread of ln h of ~0; a reference 10 % off

@@ -155,6 +155,9 @@ def test_workflow_errors(tmp_path):
         load_workflow_config({"tips_dir": "x", "results_dir": "r", "h_grid": {"min": "5 nm", "max": "1 nm"}})
     with pytest.raises(ConfigError, match="solver_mode: 'fast' is not one of"):
         load_workflow_config({"tips_dir": "x", "results_dir": "r", "solver_mode": "fast"})
+    load_workflow_config({"tips_dir": "x", "results_dir": "r", "monte_carlo": {"samples": 100000}})
+    with pytest.raises(ConfigError, match="monte_carlo.samples: 100001 is greater than the maximum of 100000"):
+        load_workflow_config({"tips_dir": "x", "results_dir": "r", "monte_carlo": {"samples": 100001}})
     (tmp_path / "afile").write_text("x")
     with pytest.raises(ConfigError, match="results_dir: .*afile' is an existing file, not a folder"):
         load_workflow_config({"tips_dir": "x", "results_dir": str(tmp_path / "afile")})

@@ -413,3 +413,27 @@ def test_lj_convention_is_the_mechanics_one():
     from pipeline.inversion.laws import LJ_Z0_OVER_H
 
     assert LJ_Z0_OVER_H == 1.0 / mech.LJ_H_OVER_Z0
+
+
+@pytest.mark.parametrize("law", ["dugdale", "lj", "tri1"])
+def test_model_mask_from_the_solve_equals_the_regime_test(law):
+    """The Monte Carlo takes which model made each W_A from the solve itself
+    (``solve_w_and_model``); it equals the separate regime test of the inputs
+    (``uses_elastic_model``: the rigid solution's Lambda against the law's boundary), across the
+    boundary, and the values equal ``solve_w``'s; a draw outside the domain falls back to it."""
+    from pipeline.inversion.solve import solve_w, solve_w_and_model, uses_elastic_model
+
+    rng = np.random.default_rng(3)
+    S = 400
+    n = rng.uniform(2.0, 6.0, (S, 1))
+    q = np.exp(rng.normal(np.log(2e-8), 0.3, (S, 1))) ** (n - 1.0)
+    F = np.exp(rng.uniform(np.log(2e-9), np.log(2e-6), (S, 1)))
+    e_star = np.full((S, 1), 40e9)
+    h = np.geomspace(0.1e-9, 5e-9, 16)[None, :]
+    F[5, 0] = -1.0  # an invalid draw: NaN, counted as neither model
+    w, elastic = solve_w_and_model(F, n, q, e_star, h, law, "auto")
+    ref = uses_elastic_model(F, n, q, e_star, h, "auto", law)
+    assert 0.05 < elastic.mean() < 0.95  # both regimes are present
+    assert np.array_equal(elastic, ref)
+    assert np.array_equal(w, solve_w(F, n, q, e_star, h, law, "auto"), equal_nan=True)
+    assert np.isnan(w[5]).all()

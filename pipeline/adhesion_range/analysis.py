@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from pipeline.adhesion_range.crossings import interval_crossing
 from pipeline.adhesion_range.curves import LawCurves
 from pipeline.adhesion_range.global_fit import global_estimate
 from pipeline.adhesion_range.inconsistency import INCONSISTENCY_MODELS
-from pipeline.adhesion_range.reference import reference_curve
+from pipeline.adhesion_range.reference import reference_at, reference_curve
 
 
 def analyse_law(inv: dict, law: str, inconsistency: str = "random_effects") -> dict:
@@ -42,4 +44,8 @@ def analyse_law(inv: dict, law: str, inconsistency: str = "random_effects") -> d
         yc, ys = curves(nm)
         res["intervals"][nm] = interval_crossing(ivs[nm], yc, ys, ref_c, ref_s, h)
     res["global"] = global_estimate(curves, order, res["intervals"], h, inconsistency)
+    g_h = res["global"]["h"]
+    at_h = g_h if np.isfinite(g_h) else float(np.exp(np.median(np.log(h))))
+    reference["at_global_h"] = (at_h, *reference_at(reference, h, at_h))
+    del reference["ln_samples"]  # (S, H): not kept past the law's analysis
     return res

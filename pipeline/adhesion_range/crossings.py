@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.adhesion_range.curves import CI_PCTS, censored_percentiles, first_finite
+from pipeline.adhesion_range.curves import CI_PCTS, ROW_CHUNK, censored_percentiles, first_finite, row_starts
 from pipeline.inversion.shape import USABLE_N_FLAGS
 
 MIN_SLOPE = 0.05  # |d ln(W/W_ref) / d ln h| below this cannot constrain h
@@ -99,7 +99,8 @@ def interval_crossing(d: dict, yc, ys, ref_c, ref_s, h) -> dict:
     if len(roots) == 0:
         return {**info, **_no_crossing(Dc, h)}
     target = roots[0] if len(roots) == 1 else float(np.median(roots))
-    root_s, side_s = sample_crossings(x, ys - ref_s, target)
+    parts = [sample_crossings(x, ys[a : a + ROW_CHUNK] - ref_s[a : a + ROW_CHUNK], target) for a in row_starts(ys)]
+    root_s, side_s = (np.concatenate([p[k] for p in parts]) for k in (0, 1))
     info["crossing_fraction"] = float(np.mean(np.isfinite(root_s)))
     info["h_samples"] = np.exp(root_s)
     info["h_pcts"] = np.exp(censored_percentiles(root_s, side_s, CI_PCTS))

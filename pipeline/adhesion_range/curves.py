@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.inversion.io import samples_on_h_grid
+
 CI_PCTS = (2.5, 16.0, 50.0, 84.0, 97.5)
+ROW_CHUNK = 1024  # Monte-Carlo samples per chunk of per-sample work (temporaries stay in the CPU's cache)
+
+
+def row_starts(samples, chunk=ROW_CHUNK):
+    """First row of every chunk of ``chunk`` Monte-Carlo samples (axis 0) of ``samples``."""
+    return range(0, max(len(samples), 1), chunk)
 
 
 def ln_positive(x):
@@ -18,18 +26,38 @@ def ln_positive(x):
 
 class LawCurves:
     """ln W_A(h) of every interval for one law of an inversion (``load_inversion``): central
-    (H,) and Monte-Carlo samples (S, H), computed once per interval."""
+    (H,) and Monte-Carlo samples (S, H) on the full h grid, computed once per interval."""
 
     def __init__(self, inv: dict, law: str):
-        self._intervals = inv["intervals"]
+        self._inv = inv
         self._law = law
         self._cache = {}
 
     def __call__(self, nm: str):
-        if nm not in self._cache:
-            d = self._intervals[nm]["laws"][self._law]
-            self._cache[nm] = (ln_positive(d["W_A"]), ln_positive(d["W_A_samples"]))
+        if self._cache.get(nm, (None, None))[1] is None:  # not yet, or released by stacked_samples
+            d = self._inv["intervals"][nm]["laws"][self._law]
+            self._cache[nm] = (ln_positive(d["W_A"]), self._ln_samples(d["W_A_samples"]))
         return self._cache[nm]
+
+    def stacked_samples(self, names):
+        """The sampled ln W_A(h) of the intervals ``names`` as one array (S, H, I); each interval's
+        own copy is released as it is moved in (only the central curves stay cached), so that the
+        samples are held once."""
+        out = None
+        for i, nm in enumerate(names):
+            yc, ys = self(nm)
+            if out is None:
+                out = np.empty((*ys.shape, len(names)))
+            out[..., i] = ys
+            self._cache[nm] = (yc, None)
+        return out
+
+    def _ln_samples(self, samples):
+        """ln W_A of the samples on the full h grid, ``ROW_CHUNK`` samples at a time."""
+        out = np.empty((len(samples), self._inv["h"].size))
+        for a in row_starts(samples):
+            out[a : a + ROW_CHUNK] = ln_positive(samples_on_h_grid(self._inv, samples[a : a + ROW_CHUNK]))
+        return out
 
 
 def nanvar_cols(y):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.adhesion_range.curves import CI_PCTS, LawCurves, censored_percentiles
-from pipeline.adhesion_range.gls import argmin_refined, gls_chi2, precision, sample_covariances
+from pipeline.adhesion_range.gls import argmin_refined, gls_chi2, precision, sample_covariances, sample_minima
 from pipeline.adhesion_range.inconsistency import random_effects_if_inconsistent, widen_if_inconsistent
 
 USED_STATUSES = ("reference", "ok", "multiple_crossings", "n_too_close_to_2")
@@ -50,15 +50,14 @@ def global_estimate(curves: LawCurves, order: list, intervals: dict, h, inconsis
         g["note"] += "no worn interval constrains h; W_A from the reference only"
         return g
     Yc = np.stack([curves(nm)[0] for nm in used], axis=-1)  # (H, I)
-    Ys = np.stack([curves(nm)[1] for nm in used], axis=-1)  # (S, H, I)
+    Ys = curves.stacked_samples(used)  # (S, H, I)
     C = sample_covariances(Ys)
     P = precision(C)
     mc, chic = gls_chi2(Yc, P)
     g["chi2"] = np.where(np.isfinite(chic), chic, np.nan)
     g["W_common"] = np.exp(mc)
     xs, ms, chis, edge = argmin_refined(x, chic[None, :], mc[None, :])
-    ms_s, chi_s = gls_chi2(Ys, P)
-    xss, mss, _, edge_s = argmin_refined(x, chi_s, ms_s)
+    xss, mss, edge_s = sample_minima(x, Ys, P)
     g["h_samples"] = np.exp(xss)
     g["W_samples"] = np.exp(mss)
     g["chi2_min"] = float(chis[0])

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.adhesion_range.curves import ROW_CHUNK
+
 MIN_SAMPLES_FOR_COV = 20
-SAMPLE_CHUNK = 8192  # Monte-Carlo samples per chunk of the per-sample GLS (memory ~ chunk x H x I)
+SAMPLE_CHUNK = 8192  # Monte-Carlo samples per chunk of the covariance sums (memory ~ chunk x H x I)
 
 
 def sample_covariances(Y, chunk=None):
@@ -74,6 +76,22 @@ def gls_chi2(Y, P, chunk=None):
         parts = [_gls_chi2(Y[a : a + chunk], P) for a in range(0, Y.shape[0], chunk)]
         return np.concatenate([m for m, _ in parts]), np.concatenate([c for _, c in parts])
     return _gls_chi2(Y, P)
+
+
+def sample_minima(x, Ys, P, offsets=None, chunk=None):
+    """Per-sample global estimate: the GLS chi^2(h) of every Monte-Carlo sample of Ys (S, H, I)
+    (plus ``offsets``, broadcastable to it: the random-effects draws) minimised over x = ln h by
+    :func:`argmin_refined`, ``chunk`` (default ``ROW_CHUNK``) samples at a time, so that only the
+    per-sample results (S,) are kept: (ln h*, ln W*, edge), each (S,)."""
+    chunk = ROW_CHUNK if chunk is None else int(chunk)
+    S = Ys.shape[0]
+    parts = []
+    for a in range(0, S, chunk if S > chunk else max(S, 1)):
+        Y = Ys[a : a + chunk] if offsets is None else Ys[a : a + chunk] + offsets[a : a + chunk]
+        ms, chi = _gls_chi2(Y, P)
+        xs, mstar, _, edge = argmin_refined(x, chi, ms)
+        parts.append((xs, mstar, edge))
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))
 
 
 def _gls_chi2(Y, P):

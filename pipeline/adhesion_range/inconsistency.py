@@ -13,7 +13,7 @@ import numpy as np
 from scipy.special import chdtrc, ndtri
 
 from pipeline.adhesion_range.curves import CI_PCTS, censored_percentiles
-from pipeline.adhesion_range.gls import argmin_refined, gls_chi2, min_chi2, precision
+from pipeline.adhesion_range.gls import min_chi2, precision, sample_minima
 
 INCONSISTENCY_MODELS = ("random_effects", "birge")
 UNTESTABLE = (
@@ -96,8 +96,7 @@ def random_effects_if_inconsistent(g, x, Yc, Ys, C):
     eps = np.sqrt(tau2) * np.random.default_rng([n_samples, n_intervals, 0x7A0]).standard_normal(
         (n_samples, 1, n_intervals)
     )
-    ms_s, chi_s = gls_chi2(Ys + eps, P)
-    xss, mss, _, edge_s = argmin_refined(x, chi_s, ms_s)
+    xss, mss, edge_s = sample_minima(x, Ys, P, offsets=eps)
     g["h_unscaled"], g["W_A_unscaled"] = g["h"], g["W_A"]
     if edge == 0 and np.isfinite(xs):
         g["h"], g["W_A"] = float(np.exp(xs)), float(np.exp(ms))

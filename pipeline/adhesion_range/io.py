@@ -20,7 +20,6 @@ import numpy as np
 
 from pipeline.adhesion_range.crossings import MIN_SLOPE, N_SIGMA_NEAR_2
 from pipeline.adhesion_range.curves import CI_PCTS
-from pipeline.adhesion_range.reference import reference_at
 from pipeline.h5io import atomic_h5, create_group, read_attr_json, read_dataset, write_dataset
 from pipeline.inversion.laws import CONVENTIONS, LJ_Z0_OVER_H
 
@@ -81,7 +80,7 @@ def write_range_h5(out_h5, inv, results, *, tip="", source=""):
             for nm in inv["order"]:
                 _write_crossing(gint, nm, res["intervals"][nm], inv["intervals"][nm]["laws"][law])
             if res.get("global") is not None:
-                _write_global(gl, res["global"], res.get("reference"), h)
+                _write_global(gl, res["global"], res.get("reference"))
 
 
 def _write_interval(gi, nm: str, d: dict) -> None:
@@ -138,7 +137,7 @@ def _write_crossing(gint, nm: str, info: dict, dl: dict) -> None:
     write_dataset(g, "W_A_p84", dl["W_A_p84"], "J/m^2", "84th percentile of the MC W_A(h)")
 
 
-def _write_global(gl, gg: dict, ref, h) -> None:
+def _write_global(gl, gg: dict, ref) -> None:
     g = create_group(
         gl, "global", status=gg.get("status", ""), note=gg.get("note", ""), intervals_used=gg["intervals_used"]
     )
@@ -191,8 +190,7 @@ def _write_global(gl, gg: dict, ref, h) -> None:
             g, "edge_fraction", gg["edge_fraction"], "1", "fraction of samples with the minimum at a grid end"
         )
     if ref is not None:
-        hv = gg["h"] if np.isfinite(gg["h"]) else float(np.exp(np.median(np.log(h))))
-        w, pc = reference_at(ref, h, hv)
+        hv, w, pc = ref["at_global_h"]
         write_dataset(g, "W_ref_at_h", w, "J/m^2", "reference W_A at the global h (grid median if none)")
         write_dataset(g, "W_ref_at_h_pcts", pc, "J/m^2", "percentiles of the reference W_A there")
         write_dataset(g, "W_ref_h", hv, "m", "h at which W_ref_at_h is evaluated")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.adhesion_range.curves import CI_PCTS, LawCurves, nanvar_cols, wmean_ln
+from pipeline.adhesion_range.curves import CI_PCTS, ROW_CHUNK, LawCurves, nanvar_cols, row_starts, wmean_ln
 from pipeline.inversion.montecarlo import sample_percentiles
 
 H_FLATNESS_MIN = 0.3e-9  # the paper's check: W_ref(h) nearly constant for h >= 0.3 nm
@@ -33,7 +33,10 @@ def reference_curve(curves: LawCurves, refs: list, ivs: dict, h, notes: list):
     if not yc_list:
         return None, None, None
     ref_c = wmean_ln(yc_list, var_list)
-    ref_s = wmean_ln(ys_list, [v[None, :] * np.ones_like(ys_list[0]) for v in var_list])
+    ref_s = np.empty(ys_list[0].shape)
+    for a in row_starts(ref_s):  # the weighted mean sample by sample: only ROW_CHUNK rows of temporaries
+        rows = [ys[a : a + ROW_CHUNK] for ys in ys_list]
+        ref_s[a : a + ROW_CHUNK] = wmean_ln(rows, [v[None, :] * np.ones_like(rows[0]) for v in var_list])
     Wc = np.exp(ref_c)
     sel = h >= H_FLATNESS_MIN - 1e-15
     if not np.any(sel):

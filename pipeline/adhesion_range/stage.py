@@ -35,7 +35,7 @@ def run_adhesion_range(
     paths ``w_of_h_png`` / ``adhesion_map_png``).  Returns {law: analysis dict}.
     """
     t0 = time.perf_counter()
-    inv = load_inversion(inversion_h5)
+    inv = load_inversion(inversion_h5, samples_on_grid=False)  # each law interpolated when analysed
     tip = tip or inv.get("tip") or ""
     results = {}
     for j, law in enumerate(inv["laws"]):

@@ -30,10 +30,9 @@ from pipeline.h5io import (
 )
 from pipeline.inversion.hgrid import interp_loglog
 from pipeline.inversion.laws import CONVENTIONS, full_model_name
-from pipeline.inversion.montecarlo import sample_percentiles
+from pipeline.inversion.montecarlo import PERCENTILES
 from pipeline.inversion.shape import N_POLICY
 
-PERCENTILES = (16.0, 50.0, 84.0)
 FP_SAMPLING = "Student t (dof = n_curves - 1; normal if < 3 curves) around F_p_mean with F_p_sem, truncated > 0"
 __all__ = ["load_fit", "write_inversion_h5", "load_inversion"]
 
@@ -164,18 +163,17 @@ def _write_draws(gs, dr: dict) -> None:
 
 
 def _write_law(gl, law: str, lr: dict, h, hm) -> None:
-    w_s = lr["samples"]
     write_dataset(gl, "W_A", lr["W_A"], "J/m^2", "W_A(h) from the best estimates")
     write_dataset(
         gl,
         "W_A_samples",
-        w_s.astype(np.float32),
+        lr["samples"],
         "J/m^2",
         "Monte-Carlo samples of W_A on h_grid_mc, shape (sample, h_mc); "
         "interpolate linearly in (ln h, ln W_A) for the full grid",
     )
-    valid_frac = interp_loglog(hm, np.isfinite(w_s).mean(axis=0), h, log_y=False)
-    for p, row in zip(PERCENTILES, sample_percentiles(w_s, PERCENTILES)):
+    valid_frac = interp_loglog(hm, lr["finite_fraction"], h, log_y=False)
+    for p, row in zip(PERCENTILES, lr["sample_percentiles"]):
         write_dataset(
             gl,
             f"W_A_p{int(p)}",
@@ -202,10 +200,13 @@ def _write_law(gl, law: str, lr: dict, h, hm) -> None:
             write_dataset(gl, "maugis_lambda", lr["maugis"], "1", "Maugis parameter (n ~ 2)")
 
 
-def load_inversion(path) -> dict:
+def load_inversion(path, samples_on_grid: bool = True) -> dict:
     """Read a stage-4 file back into plain arrays (used by stage 5, reports, figures); the
-    Monte-Carlo samples are interpolated onto the full h grid."""
-    out = {"intervals": {}}
+    Monte-Carlo samples are interpolated onto the full h grid, or with ``samples_on_grid=False``
+    left as stored (float32 on ``h_mc``; :func:`samples_on_h_grid` interpolates one law of one
+    interval when it is needed, so that a large Monte Carlo is not held on the full grid for every
+    law at once)."""
+    out = {"intervals": {}, "samples_on_grid": bool(samples_on_grid)}
     with h5py.File(path, "r") as f:
         out["h"] = f["h_grid"][()]
         out["h_mc"] = f["h_grid_mc"][()] if "h_grid_mc" in f else out["h"]
@@ -220,6 +221,14 @@ def load_inversion(path) -> dict:
     return out
 
 
+def samples_on_h_grid(inv: dict, samples):
+    """Monte-Carlo samples of W_A of one law and interval (``load_inversion``) on the full h grid
+    (S, H): as they are where ``load_inversion`` interpolated them, else interpolated now."""
+    if inv.get("samples_on_grid", True):
+        return samples
+    return interp_loglog(inv["h_mc"], np.asarray(samples, dtype=float), inv["h"])
+
+
 def _read_interval(g, inv: dict) -> dict:
     d = {k: read_dataset(g, k)[0] for k in g if isinstance(g[k], h5py.Dataset)}
     d["scans"] = int(g.attrs["scans"])
@@ -230,7 +239,8 @@ def _read_interval(g, inv: dict) -> dict:
     for law in inv["laws"]:
         gl = g[law]
         d["laws"][law] = {k: read_dataset(gl, k)[0] for k in gl}
-        d["laws"][law]["W_A_samples"] = interp_loglog(
-            inv["h_mc"], np.asarray(d["laws"][law]["W_A_samples"], dtype=float), inv["h"]
-        )
+        if inv["samples_on_grid"]:
+            d["laws"][law]["W_A_samples"] = interp_loglog(
+                inv["h_mc"], np.asarray(d["laws"][law]["W_A_samples"], dtype=float), inv["h"]
+            )
     return d

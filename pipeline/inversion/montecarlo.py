@@ -109,6 +109,9 @@ def draw_interval(ss, fit, forces, size):
     return {"F_p_mean": fp, "n_raw": n_raw, "n": n, "ln_Q": ln_q, "n_clipped": n_raw < N_MIN}
 
 
+PERCENTILES = (16.0, 50.0, 84.0)  # of the W_A(h) samples, stored per law in the inversion file
+
+
 def sample_percentiles(samples, pcts):
     """Percentiles ``pcts`` over the Monte-Carlo samples (axis 0) of their finite values; NaN
     where a column has none."""

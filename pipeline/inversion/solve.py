@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 import pipeline.mechanics as mech
+from pipeline.inversion.montecarlo import PERCENTILES, sample_percentiles
 from pipeline.inversion.shape import N_MIN
 
 N_NEAR_2_FOR_MAUGIS = 0.25  # Maugis parameter reported for intervals with n < 2.25
@@ -26,25 +27,43 @@ def solve_w(F, n, q, e_star, h, law, mode, exact=False):
     Out-of-domain inputs (the mechanics raises ValueError) are isolated row by row and
     element by element so that a single bad Monte-Carlo draw never stops the run.
     """
+    return _solve(F, n, q, e_star, h, law, mode, exact)[0]
+
+
+def solve_w_and_model(F, n, q, e_star, h, law, mode, exact=False):
+    """(W_A, elastic mask): :func:`solve_w` and, from the same solve, where the full elastic model
+    made the value (:func:`uses_elastic_model` without solving the rigid inverse a second time)."""
+    w, elastic = _solve(F, n, q, e_star, h, law, mode, exact)
+    if elastic is None:  # an element out of the model's domain: the masks from the inputs
+        return w, uses_elastic_model(F, n, q, e_star, h, mode, law)
+    return w, elastic
+
+
+def _solve(F, n, q, e_star, h, law, mode, exact):
+    """(W_A, elastic mask) of :func:`solve_w` (the mask False where an input is invalid); the mask
+    is None where the piecewise path was needed."""
     model = "elastic" if (mode == "mdn" and law != "dugdale") else mode
     F, n, q, e_star, h = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (F, n, q, e_star, h)))
     out = np.full(F.shape, np.nan)
+    elastic = np.zeros(F.shape, bool)
     ok = np.isfinite(F) & np.isfinite(n) & np.isfinite(q) & np.isfinite(e_star) & np.isfinite(h) & (F > 0)
     if not np.any(ok):
-        return out
+        return out, elastic
 
-    def call(sel):
-        return np.asarray(
-            mech.work_of_adhesion(F[sel], n[sel], q[sel], e_star[sel], h[sel], potential=law, model=model, exact=exact),
-            dtype=float,
+    def call(sel, with_regime=False):
+        w, rig = mech.work_of_adhesion_and_regime(
+            F[sel], n[sel], q[sel], e_star[sel], h[sel], potential=law, model=model, exact=exact
         )
+        w = np.asarray(w, dtype=float)
+        return (w, np.asarray(rig, dtype=bool)) if with_regime else w
 
     try:
-        out[ok] = call(ok)
-        return out
+        out[ok], rigid = call(ok, with_regime=True)
+        elastic[ok] = ~rigid
+        return out, elastic
     except ValueError:
         pass
-    return _solve_piecewise(call, ok, out)
+    return _solve_piecewise(call, ok, out), None
 
 
 def _solve_piecewise(call, ok, out):
@@ -103,6 +122,23 @@ def uses_elastic_model(F, n, q, e_star, h, mode, law="dugdale"):
     return out
 
 
+SAMPLE_ROWS = 2048  # Monte-Carlo samples solved at a time (their temporaries stay in the CPU's cache)
+
+
+def _solve_samples(samples, hm, law, mode, exact):
+    """(W_A, elastic mask) of the Monte-Carlo samples (columns (S, 1) of ``samples``) on ``hm``,
+    ``SAMPLE_ROWS`` samples at a time."""
+    S = len(samples["F"])
+    w = np.empty((S, hm.size))
+    elastic = np.empty((S, hm.size), bool)
+    for a in range(0, S, SAMPLE_ROWS):
+        rows = {k: v[a : a + SAMPLE_ROWS] for k, v in samples.items()}
+        w[a : a + SAMPLE_ROWS], elastic[a : a + SAMPLE_ROWS] = solve_w_and_model(
+            rows["F"], rows["n"], rows["Q"], rows["E_star"], hm[None, :], law, mode, exact
+        )
+    return w, elastic
+
+
 def law_curves(law, central, samples, h, hm, mode, exact=False) -> dict:
     """One law's W_A(h) for an interval: the central curve on ``h`` and the Monte-Carlo samples on
     ``hm`` (shape (samples, hm)), which model made each (``elastic_used``, and the fraction of
@@ -113,12 +149,16 @@ def law_curves(law, central, samples, h, hm, mode, exact=False) -> dict:
     as columns (samples, 1)."""
     F, n, q, e_star = central["F"], central["n"], central["Q"], central["E_star"]
     w_c = solve_w(F, n, q, e_star, h, law, mode, exact)
-    w_s = solve_w(samples["F"], samples["n"], samples["Q"], samples["E_star"], hm[None, :], law, mode, exact)
-    out = {"W_A": w_c, "samples": w_s, "elastic_used": uses_elastic_model(F, n, q, e_star, h, mode, law)}
+    w_s, used_s = _solve_samples(samples, hm, law, mode, exact)
+    out = {
+        "W_A": w_c,
+        # the samples as stored (float32), with what is taken from them at full precision
+        "samples": w_s.astype(np.float32),
+        "sample_percentiles": sample_percentiles(w_s, PERCENTILES),
+        "finite_fraction": np.isfinite(w_s).mean(axis=0),
+        "elastic_used": uses_elastic_model(F, n, q, e_star, h, mode, law),
+    }
     if mode == "auto":
-        used_s = uses_elastic_model(
-            samples["F"], samples["n"], samples["Q"], samples["E_star"], hm[None, :], "auto", law
-        )
         fin = np.isfinite(w_s)
         cnt = fin.sum(axis=0)
         frac = (used_s & fin).sum(axis=0) / np.maximum(cnt, 1)

@@ -10,6 +10,7 @@ Public API
 pulloff_nd(n, Lambda, potential="dugdale", model="mdn", exact=False)
 pulloff_force(n, Q, E_star, W, h, potential="dugdale", model="mdn", exact=False)
 work_of_adhesion(F_p, n, Q, E_star, h, potential="dugdale", model="mdn", exact=False)
+work_of_adhesion_and_regime(...): the same and, from the same solve, where the rigid solution was used
 lambda_from_g(G, n, potential="dugdale", model="mdn", exact=False)
 model_used(n, Q, E_star, h, W=None, F_p=None, potential="dugdale")
     models: "rigid", "mdn" (Dugdale), "elastic" (any law), "auto" (rigid below rigid_boundary(n, law),
@@ -28,38 +29,62 @@ rigid_force_curve(n, u, potential), traction(s, W, h, potential)
 
 from __future__ import annotations
 
+import importlib
 from typing import NamedTuple
 
 import numpy as np
 
 from . import _validate
-from .api import (
-    lambda_from_g,
-    model_used,
-    pulloff_force,
-    pulloff_nd,
-    pulloff_with_model,
-    rigid_boundary,
-    work_of_adhesion,
-    work_of_adhesion_with_model,
-)
-from .boundary import lambda_boundary, lambda_boundary_solved, rigid_error
-from .elastic_contact import ElasticPulloff, elastic_path, elastic_pulloff
-from .mdn import MDNBranch, jkr_limit_nd
-from .mdn import mdn_branch as _mdn_branch
-from .rigid import LJ_H_OVER_Z0, rigid_force_curve, rigid_optimal_gap, rigid_pulloff_ratio, traction
-from .scaling import (
-    log_displacement_scale,
-    log_force_scale,
-    log_length_scale,
-    maugis_from_transition,
-    maugis_parameter,
-    q_from_rs,
-    r_from_q,
-    transition_parameter,
-)
-from .tables import build_table
-from .traction_laws import TractionLaw, get_law, tabulated_law
+
+# The public names and the module of each, imported on first use (PEP 562): a job that needs only
+# Eq. 13 (the adhesion-map figure) does not load scipy's integrators and splines (~0.4 s).
+_LAZY = {
+    ".api": (
+        "lambda_from_g",
+        "model_used",
+        "pulloff_force",
+        "pulloff_nd",
+        "pulloff_with_model",
+        "rigid_boundary",
+        "work_of_adhesion",
+        "work_of_adhesion_and_regime",
+        "work_of_adhesion_with_model",
+    ),
+    ".boundary": ("lambda_boundary", "lambda_boundary_solved", "rigid_error"),
+    ".elastic_contact": ("ElasticPulloff", "elastic_path", "elastic_pulloff"),
+    ".mdn": ("MDNBranch", "jkr_limit_nd"),
+    ".rigid": ("LJ_H_OVER_Z0", "rigid_force_curve", "rigid_optimal_gap", "rigid_pulloff_ratio", "traction"),
+    ".scaling": (
+        "log_displacement_scale",
+        "log_force_scale",
+        "log_length_scale",
+        "maugis_from_transition",
+        "maugis_parameter",
+        "q_from_rs",
+        "r_from_q",
+        "transition_parameter",
+    ),
+    ".tables": ("build_table",),
+    ".traction_laws": ("TractionLaw", "get_law", "tabulated_law"),
+}
+_MODULE_OF = {name: mod for mod, names in _LAZY.items() for name in names}
+
+
+def __getattr__(name):
+    """A public name (or a submodule) of the package, imported when first asked for."""
+    if name in _MODULE_OF:
+        value = getattr(importlib.import_module(_MODULE_OF[name], __name__), name)
+        globals()[name] = value
+        return value
+    try:
+        return importlib.import_module(f".{name}", __name__)
+    except ModuleNotFoundError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_MODULE_OF))
+
 
 __all__ = [
     "pulloff_nd",
@@ -88,6 +113,7 @@ __all__ = [
     "build_table",
     "pulloff_with_model",
     "work_of_adhesion_with_model",
+    "work_of_adhesion_and_regime",
     "rigid_boundary",
     "elastic_pulloff",
     "elastic_path",
@@ -100,6 +126,8 @@ __all__ = [
 
 def mdn_branch(n, Lambda, num=400):
     """Full non-dimensional M-D-n curve (a~, delta~, P~, m) for scalar n, Lambda (Eqs. 9-11)."""
+    from .mdn import mdn_branch as _mdn_branch
+
     n = float(_validate.exponent(n))
     lam = float(_validate.transition(Lambda))
     return _mdn_branch(n, lam, num=num)
@@ -118,6 +146,8 @@ class MDNBranchSI(NamedTuple):
 
 def mdn_branch_si(n, Q, E_star, W, h, num=400):
     """M-D-n curve in SI units for one case (scalars), via Eqs. 4-6."""
+    from .scaling import log_displacement_scale, log_force_scale, log_length_scale, transition_parameter
+
     lam = float(transition_parameter(n, Q, E_star, W, h))
     b = mdn_branch(n, lam, num=num)
     n = float(n)

@@ -45,6 +45,7 @@ __all__ = [
     "lambda_from_g",
     "pulloff_with_model",
     "work_of_adhesion_with_model",
+    "work_of_adhesion_and_regime",
     "rigid_boundary",
 ]
 
@@ -240,12 +241,33 @@ def work_of_adhesion(F_p, n, Q, E_star, h, potential="dugdale", model="mdn", exa
     F_p = V.positive("F_p", F_p)
     n = V.exponent(n)
     Q, E_star, h = (V.positive(k, v) for k, v in (("Q", Q), ("E_star", E_star), ("h", h)))
+    return _out(_inverse(F_p, n, Q, E_star, h, pot, mdl, exact)[0])
+
+
+def work_of_adhesion_and_regime(F_p, n, Q, E_star, h, potential="dugdale", model="mdn", exact=False):
+    """(W_A [J/m^2], rigid mask): :func:`work_of_adhesion` and, from the same solve, True where
+    the rigid solution was used (``model="auto"``: :func:`model_used`; "rigid": all; else none)."""
+    pot = V.potential(potential)
+    mdl = V.model(model, pot)
+    F_p = V.positive("F_p", F_p)
+    n = V.exponent(n)
+    Q, E_star, h = (V.positive(k, v) for k, v in (("Q", Q), ("E_star", E_star), ("h", h)))
+    W, rigid = _inverse(F_p, n, Q, E_star, h, pot, mdl, exact)
+    return _out(W), _out(rigid)
+
+
+def _inverse(F_p, n, Q, E_star, h, pot, mdl, exact):
+    """W_A and the rigid mask, both of the broadcast shape, from validated inputs."""
     F_p, n, Q, E_star, h = np.broadcast_arrays(F_p, n, Q, E_star, h)
     shape = n.shape
     F_p, n, Q, E_star, h = (a.ravel() for a in (F_p, n, Q, E_star, h))
     log_g = log_g_group(F_p, n, Q, E_star, h)
-    x = _check_x(_log_lambda_from_g(log_g, n, pot, mdl, exact))
-    return _out(work_from_lambda(x, n, Q, E_star, h).reshape(shape))
+    if mdl == "auto":
+        x, rigid = _x_auto(log_g, n, exact, pot)
+    else:
+        x, rigid = _log_lambda_from_g(log_g, n, pot, mdl, exact), np.full(n.shape, mdl == "rigid")
+    x = _check_x(x)
+    return work_from_lambda(x, n, Q, E_star, h).reshape(shape), rigid.reshape(shape)
 
 
 def model_used(n, Q, E_star, h, W=None, F_p=None, potential="dugdale"):
@@ -303,6 +325,6 @@ def work_of_adhesion_with_model(law, F_p, n, Q, E_star, h, mode="auto", exact=Fa
     solution, as the paper's procedure, Sec. 4.2)."""
     pot = V.potential(law)
     mdl = V.model(_mode(mode, pot), pot)
-    W = np.asarray(work_of_adhesion(F_p, n, Q, E_star, h, potential=pot, model=mdl, exact=exact))
-    rig = np.asarray(model_used(n, Q, E_star, h, F_p=F_p, potential=pot)) if mdl == "auto" else np.zeros(W.shape, bool)
-    return _out(W), _names(np.broadcast_to(rig, W.shape), mdl, pot)
+    W, rig = work_of_adhesion_and_regime(F_p, n, Q, E_star, h, potential=pot, model=mdl, exact=exact)
+    W = np.asarray(W)
+    return _out(W), _names(np.broadcast_to(np.asarray(rig) if mdl == "auto" else False, W.shape), mdl, pot)

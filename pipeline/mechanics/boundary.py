@@ -5,9 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from . import _validate as V
-from .mdn import pulloff_mdn_exact
-from .rigid import rigid_pulloff_nd_raw
-from .tables import pulloff_mdn
 
 __all__ = ["lambda_boundary", "lambda_boundary_solved", "rigid_error"]
 
@@ -24,6 +21,9 @@ def lambda_boundary(n):
 def rigid_error(n, lam, exact=True):
     """(F_rigid - F_MDn) / F_MDn for the Dugdale law at (n, Lambda) (>= 0): Eq. 12 against Eqs. 9-11."""
     n, lam = np.broadcast_arrays(V.exponent(n), V.transition(lam))
+    from .rigid import rigid_pulloff_nd_raw  # scipy: only where a pull-off is evaluated, not for Eq. 13
+    from .tables import pulloff_mdn
+
     return rigid_pulloff_nd_raw(n, lam) / pulloff_mdn(n, lam, exact) - 1.0
 
 
@@ -33,6 +33,9 @@ def lambda_boundary_solved(n, tol=0.05):
     on the direct M-D-n solve.  Compare with :func:`lambda_boundary` (Eq. 13).
     """
     from scipy.optimize import brentq  # a check, not a stage's work: kept out of the stages' start-up
+
+    from .mdn import pulloff_mdn_exact
+    from .rigid import rigid_pulloff_nd_raw
 
     n = V.exponent(n)
     out = np.empty(n.shape)
