@@ -57,6 +57,18 @@ def reference_curve(pts_tip, step=0.25, smooth_px=2.0):
     return S, x, z, tz / nn, -tx / nn
 
 
+def _extreme_cover(lo, hi, seg, n_levels, fill, reduce):
+    """Per level index in [0, n_levels): ``reduce`` (np.minimum / np.maximum) of the ``seg``
+    whose range [lo, hi) holds it, ``fill`` where none does."""
+    cnt = np.maximum(hi - lo, 0)
+    out = np.full(n_levels, fill)
+    total = int(cnt.sum())
+    if total:
+        start = np.repeat(lo - (np.cumsum(cnt) - cnt), cnt)
+        reduce.at(out, start + np.arange(total), np.repeat(seg, cnt))
+    return out
+
+
 class _Body:
     """Cross-section tables of the body bounded by a (left -> right) meridian polyline.
 
@@ -93,14 +105,19 @@ class _Body:
         lv = (self.zg >= zh[dip].min() - self.dz) & (self.zg <= rm[dip].max() + self.dz)
         zg = self.zg[lv]
         xh, zh = xh[: dip[-1] + 2], zh[: dip[-1] + 2]
-        below = zh[None, :] <= zg[:, None]  # (levels, points)
-        up = below[:, :-1] & ~below[:, 1:]  # leaves the sublevel set between i and i+1
-        down = ~below[:, :-1] & below[:, 1:]  # re-enters it
-        has = down.any(1) & up.any(1)
+        # segment i leaves the sublevel set {z <= level} (up) for the levels in
+        # [z_i, z_i+1), re-enters it (down) for those in [z_i+1, z_i): per level the first
+        # up and the last down segment (level index ranges by bisection, no levels x points table)
+        q = np.searchsorted(zg, zh, side="left")
+        nseg = zh.size - 1
+        seg = np.arange(nseg)
+        first_up = _extreme_cover(q[:-1], q[1:], seg, zg.size, nseg, np.minimum)
+        last_dn = _extreme_cover(q[1:], q[:-1], seg, zg.size, -1, np.maximum)
+        has = (first_up < nseg) & (last_dn >= 0)
         if not has.any():
             return None
-        i_up = np.argmax(up, 1)
-        i_dn = down.shape[1] - 1 - np.argmax(down[:, ::-1], 1)
+        i_up = np.where(first_up < nseg, first_up, 0)
+        i_dn = np.where(last_dn >= 0, last_dn, nseg - 1)
         has &= i_dn > i_up
 
         def cross(i):
