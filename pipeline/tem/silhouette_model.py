@@ -8,7 +8,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
-from pipeline.tem.projection import chord, chord_sq, core_radius_sq_table
+from pipeline.tem.projection import chord, core_radius_sq_table
 
 # pixel integration: the projected thickness has a square-root kink at a silhouette, which
 # the midpoint rule samples poorly; pixels whose centre lies within _FINE_PX of a silhouette
@@ -147,19 +147,13 @@ class _Body:
 
     def chords(self, x, z, core=True):
         """(t_outer, t_core) at tip-frame points (px); t_core only if ``core``."""
-        f = (z - self.zg[0]) / self.dz
-        below = f < 0
-        f = np.clip(f, 0.0, self.zg.size - 1.000001)
-        i = f.astype(np.intp)
-        w = f - i
-        cen = self.cen[i] * (1 - w) + self.cen[i + 1] * w
-        xx = x - cen
+        below, i, i1, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
+        xx = x - _lerp(self.cen, i, i1, w, w1)
         # rho^2 is interpolated between the table rows, not rho: it is linear in z at a
         # paraboloidal apex and far less curved than rho(z) ~ z^(1/n) on a flatter one, whose
         # radius jumps from 0 to the face within a fraction of a row (rho interpolated
         # linearly put a noise-free coated n 4 apex 0.045 nm off, rho^2 0.01 nm)
-        rho2 = self.rho2[i] * (1 - w) + self.rho2[i + 1] * w
-        t_o = np.where(below, 0.0, chord_sq(rho2, xx))
+        t_o = _chord_in_place(_lerp(self.rho2, i, i1, w, w1), xx, below)
         for rad, hc, lo, hi in self.holes:
             j = np.nonzero((i >= lo) & (i < hi) & ~below)[0]
             ij, wj = i[j], w[j]
@@ -168,13 +162,40 @@ class _Body:
             t_o[j] = np.maximum(t_o[j] - chord(r_h, x[j] - c_h), 0.0)
         if not core or self.coat <= 0:
             return t_o, t_o
-        fc = (z - self.zc0) / self.dz
-        below_c = fc < 0
-        fc = np.clip(fc, 0.0, self.rho_c2.size - 1.000001)
-        ic = fc.astype(np.intp)
-        wc = fc - ic
-        rc2 = self.rho_c2[ic] * (1 - wc) + self.rho_c2[ic + 1] * wc
-        return t_o, np.where(below_c, 0.0, chord_sq(rc2, xx))
+        below, i, i1, w, w1 = _rows(z, self.zc0, self.dz, self.rho_c2.size)
+        return t_o, _chord_in_place(_lerp(self.rho_c2, i, i1, w, w1), xx, below)
+
+
+def _rows(z, z0, dz, n):
+    """(below the table, row i, i + 1, weight w of row i + 1, 1 - w) of linear interpolation at
+    heights ``z`` in a table of ``n`` rows z0 + j dz (clipped to its ends)."""
+    f = z - z0
+    f /= dz
+    below = f < 0
+    np.clip(f, 0.0, n - 1.000001, out=f)
+    i = f.astype(np.intp)
+    f -= i
+    return below, i, i + 1, f, 1 - f
+
+
+def _lerp(table, i, i1, w, w1):
+    """table[i] (1 - w) + table[i + 1] w (``_rows``), in one buffer."""
+    out = table[i]
+    out *= w1
+    b = table[i1]
+    b *= w
+    out += b
+    return out
+
+
+def _chord_in_place(r2, xx, below):
+    """``projection.chord_sq(r2, xx)`` (0 where ``below``), computed in ``r2``'s buffer."""
+    r2 -= np.square(xx)
+    np.maximum(r2, 0.0, out=r2)
+    np.sqrt(r2, out=r2)
+    r2 *= 2.0
+    r2[below] = 0.0
+    return r2
 
 
 class _Problem:
@@ -239,6 +260,7 @@ class _Problem:
         self.noise = noise
         self.w = np.ones(self.idx.size)
         self.map_c = None
+        self.tiles = _blur_tiles(self.idx, self.shape)
 
     def set_reference(self, curve):
         """Reference meridian (S, x, z, nx, nz) and its B-spline basis (knots every D)."""
@@ -355,13 +377,26 @@ class _Problem:
         return T
 
     def blurred(self, T, sigma):
-        """Columns (Npix, 3): blur(T), blur(T) x row, blur(T) x col at the residual pixels."""
+        """Columns (Npix, 3): blur(T), blur(T) x row, blur(T) x col at the residual pixels.
+
+        The blur of the rectangle is computed only on the tiles that hold residual pixels, each
+        widened by the kernel radius (cut at the rectangle's sides, where the "nearest"
+        extension is the rectangle's own): the same numbers at those pixels as one blur of
+        the whole rectangle (the separable passes read nothing outside the widened tile)."""
         img = np.ones(self.shape[0] * self.shape[1])
         img[self.need] = T
         img = img.reshape(self.shape)
         if sigma > 0.05:
-            img = ndimage.gaussian_filter(img, sigma, mode="nearest", truncate=4.0)
-        bt = img.ravel()[self.idx]
+            rad, k = _gauss_kernel(sigma)
+            H, W = self.shape
+            bt = np.empty(self.idx.size)
+            for sel, rr, cc, (r0, r1, c0, c1) in self.tiles:
+                a0, b0 = max(0, r0 - rad), max(0, c0 - rad)
+                blk = ndimage.correlate1d(img[a0 : min(H, r1 + rad), b0 : min(W, c1 + rad)], k, 0, mode="nearest")
+                blk = ndimage.correlate1d(blk[r0 - a0 : r1 - a0], k, 1, mode="nearest")  # the tile's rows only
+                bt[sel] = blk[rr - r0, cc - b0]
+        else:
+            bt = img.ravel()[self.idx]
         return np.column_stack([bt, bt * self.rn, bt * self.cn])
 
     def linear(self, B):
@@ -372,6 +407,31 @@ class _Problem:
         """Poisson weights 1/sd with sd = noise x sqrt(model / background) (flattened image)."""
         m = np.clip(model, 0.05, None)
         self.w = 1.0 / (self.noise * np.sqrt(m))
+
+
+def _gauss_kernel(sigma, truncate=4.0):
+    """(radius, weights) of ``ndimage.gaussian_filter``'s 1-D kernel (same numbers)."""
+    rad = int(truncate * float(sigma) + 0.5)
+    x = np.arange(-rad, rad + 1)
+    phi = np.exp(-0.5 / (sigma * sigma) * x**2)
+    return rad, (phi / phi.sum())[::-1]
+
+
+def _blur_tiles(idx, shape, rows=64, gap=48):
+    """Tiles of the residual pixels ``idx`` (flat indices into ``shape``) for ``_Problem.blurred``:
+    strips of ``rows`` rows, split where a strip's pixels leave more than ``gap`` columns free
+    (the two flanks); each (positions in ``idx``, their rows, their columns, (row0, row1, col0,
+    col1) of the tile, ends exclusive)."""
+    rr, cc = np.divmod(idx, shape[1])
+    tiles = []
+    for s in np.unique(rr // rows):
+        sel = np.nonzero(rr // rows == s)[0]
+        sel = sel[np.argsort(cc[sel], kind="stable")]
+        cut = np.nonzero(np.diff(cc[sel]) > gap)[0] + 1
+        for part in np.split(sel, cut):
+            r, c = rr[part], cc[part]
+            tiles.append((part, r, c, (int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1)))
+    return tiles
 
 
 def _axis_attenuation(img, frame, curve, background=1.0):
