@@ -147,6 +147,7 @@ class _Body:
 
     def chords(self, x, z, core=True):
         """(t_outer, t_core) at tip-frame points (px); t_core only if ``core``."""
+        core = core and self.coat > 0
         below, i, i1, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
         xx = x - _lerp(self.cen, i, i1, w, w1)
         # rho^2 is interpolated between the table rows, not rho: it is linear in z at a
@@ -160,10 +161,27 @@ class _Body:
             r_h = rad[ij] * (1 - wj) + rad[ij + 1] * wj
             c_h = hc[ij] * (1 - wj) + hc[ij + 1] * wj
             t_o[j] = np.maximum(t_o[j] - chord(r_h, x[j] - c_h), 0.0)
-        if not core or self.coat <= 0:
+        if not core:
             return t_o, t_o
+        return t_o, self._core(z, xx)
+
+    def core_chords(self, x, z):
+        """t_core alone at tip-frame points (px) (the outer body's centre line is needed)."""
+        below, i, i1, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
+        return self._core(z, x - _lerp(self.cen, i, i1, w, w1))
+
+    def _core(self, z, xx):
         below, i, i1, w, w1 = _rows(z, self.zc0, self.dz, self.rho_c2.size)
-        return t_o, _chord_in_place(_lerp(self.rho_c2, i, i1, w, w1), xx, below)
+        return _chord_in_place(_lerp(self.rho_c2, i, i1, w, w1), xx, below)
+
+
+def _beer_lambert(t_o, t_c, k_o, k_c):
+    """exp(-(k_o t_o + (k_c - k_o) t_c)); the second term (+0) skipped for one layer (k_c = k_o)."""
+    a = k_o * t_o
+    if k_c != k_o:
+        a += (k_c - k_o) * t_c
+    np.negative(a, out=a)
+    return np.exp(a, out=a)
 
 
 def _rows(z, z0, dz, n):
@@ -275,6 +293,7 @@ class _Problem:
             (val.ravel(), (np.repeat(np.arange(S.size), 4), idx.ravel())), shape=(S.size, self.K)
         ).toarray()
         self.map_c = None
+        self.version = getattr(self, "version", 0) + 1  # (map, weights, reference) changed
 
     def rebase(self, c):
         """Make the curve of offsets ``c`` the new reference (offsets then start at 0): the
@@ -332,26 +351,35 @@ class _Problem:
         n = idx.shape[0]
         self.Phi = sparse.csr_matrix((val.ravel(), (np.repeat(np.arange(n), 4), idx.ravel())), shape=(n, self.K))
         self.map_c, self.map_coat = c.copy(), float(coat)
+        self.version = getattr(self, "version", 0) + 1
 
     def map_stale(self, c, coat):
         # B-splines are >= 0 and sum to 1: no curve point moved more than max |dc|
         return self.map_c is None or np.max(np.abs(c - self.map_c)) > 0.6 or abs(coat - self.map_coat) > 0.6
 
     # ------------------------------------------------------------------ forward model
-    def chords(self, c, coat, sub=None):
+    def chords(self, c, coat, sub=None, outer=None):
         """Chords (t_o, t_c) at the needed pixel centres, and at sub-samples of the pixels near
         the outer or core silhouette (T is averaged there, where it has the square-root kink):
         8 x 8 within _FINE_PX, 4 x 4 up to _BAND_PX.  Returns (t_o, t_c, bands), bands a list
         of (pixel indices, sub-sample t_o, sub-sample t_c, sub-samples per pixel).  ``sub``
-        (indices into the needed pixels): only those, with band indices local to ``sub``."""
+        (indices into the needed pixels): only those, with band indices local to ``sub``.
+        ``outer``: (chords of this ``c`` for another layer thickness, the ``version`` they were
+        made on): their outer chords are taken as they are if the pixel map is still that one."""
         if self.map_stale(c, coat):
             self.update_pixel_map(c, coat)
+        if outer is not None:
+            outer = outer[0] if outer[1] == self.version else None
         x, z = self.curve(c)
         body = _Body(x, z, coat)
         xc, zc, dist = self.nx_, self.nz_, self.dist_need
         if sub is not None:
             xc, zc, dist = xc[sub], zc[sub], dist[sub]
-        t_o, t_c = body.chords(xc, zc)
+        if outer is None:
+            t_o, t_c = body.chords(xc, zc)
+        else:
+            t_o = outer[0]
+            t_c = body.core_chords(xc, zc) if body.coat > 0 else t_o
         # the bands are fixed between updates of the distance map (the model must be smooth
         # in the parameters for the finite differences)
         sd = np.where(t_o > 0, -dist, dist)
@@ -359,21 +387,25 @@ class _Problem:
         if self.map_coat > 0:
             near = np.minimum(near, np.abs(sd + self.map_coat))
         bands = []
-        for (sx, sz), sel in zip(self.sub, (near < _FINE_PX, (near >= _FINE_PX) & (near < _BAND_PX))):
+        for k, ((sx, sz), sel) in enumerate(zip(self.sub, (near < _FINE_PX, (near >= _FINE_PX) & (near < _BAND_PX)))):
             bi = np.nonzero(sel)[0]
             xs = (xc[bi, None] + sx[None, :]).ravel()
             zs = (zc[bi, None] + sz[None, :]).ravel()
-            s_o, s_c = body.chords(xs, zs)
+            if outer is None:
+                s_o, s_c = body.chords(xs, zs)
+            else:
+                s_o = outer[2][k][1]
+                s_c = body.core_chords(xs, zs) if body.coat > 0 else s_o
             bands.append((bi, s_o, s_c, sx.size))
         return (t_o, t_c, bands)
 
     @staticmethod
     def transmission(ch, k_o, k_c):
         t_o, t_c, bands = ch
-        T = np.exp(-(k_o * t_o + (k_c - k_o) * t_c))
+        T = _beer_lambert(t_o, t_c, k_o, k_c)
         for bi, s_o, s_c, m in bands:
             if bi.size:
-                T[bi] = np.exp(-(k_o * s_o + (k_c - k_o) * s_c)).reshape(-1, m).mean(1)
+                T[bi] = _beer_lambert(s_o, s_c, k_o, k_c).reshape(-1, m).mean(1)
         return T
 
     def blurred(self, T, sigma):
@@ -407,6 +439,7 @@ class _Problem:
         """Poisson weights 1/sd with sd = noise x sqrt(model / background) (flattened image)."""
         m = np.clip(model, 0.05, None)
         self.w = 1.0 / (self.noise * np.sqrt(m))
+        self.version = getattr(self, "version", 0) + 1
 
 
 def _gauss_kernel(sigma, truncate=4.0):
