@@ -7,7 +7,8 @@ Images: both generators (``pipeline.synth.tem_image`` Beer-Lambert renderer, ``p
 wave-optical simulator) x 512 / 1024 px x uncoated / coated (1.5 nm and 1.4 nm oxide), at the small
 pixels (0.105-0.12 nm) of the largest tips that ``bench_tem_independent`` draws (the fitted band
 grows with the profile height in pixels; pixels finer than 0.2 nm are fitted unbinned), plus the
-2048 px image of ``bench_profiles`` (0.1 nm, fitted on 2 x 2 blocks).  Each is saved as a
+2048 px image of ``bench_profiles`` (0.1 nm, fitted on 2 x 2 blocks), and the first image of each
+sample tip (``data_samples``: tip A 15 nm DLC, tip B 1.5 nm oxide, 512 px).  Each is saved as a
 calibrated TIFF and read back (``read_tem_image``), then ``extract_profile`` with the workflow
 defaults.
 
@@ -36,13 +37,12 @@ import time
 from pathlib import Path
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # one core (set before numpy loads)
-
-import numpy as np
+    os.environ.setdefault(_var, "1")  # one core (set before numpy loads, in the workers too)
 
 REPO = Path(__file__).resolve().parents[1]
 PHASES = ("read", "coarse", "single", "coating", "exact", "refine", "rest")
 NM = 1e-9
+SAMPLE_TIPS = ("tipA_DLC", "tipB_Si")
 
 
 def cases():
@@ -94,10 +94,11 @@ def render(gen, size, coated, kw):
 
 
 def make_images(directory):
-    """Render (once per cache directory) and save every case as a calibrated TIFF: {name: path}."""
+    """Render (once per cache directory) and save every case as a calibrated TIFF, then the sample
+    tips' first images (512 x 512, DLC and oxide): {name: path}."""
     from pipeline.synth.tem_wave import write_image
 
-    paths = {}
+    paths = {f"sample {tip} scan000": str(REPO / "data_samples" / tip / "tem" / "scan000.tif") for tip in SAMPLE_TIPS}
     for name, gen, size, coated, kw in cases():
         path = Path(directory) / (name.replace(" ", "_").replace("(", "").replace(")", "") + ".tif")
         if not path.exists():

@@ -72,30 +72,23 @@ def core_radius_sq_table(rho_sq, dz, thickness):
     the table is continuous in t and in the outer shape; the table on the outer grid
     (``core_radius_table``) put the core's apex on a grid row and moved it in steps of dz as t
     changed, a jump of 12 in chi^2 at t = 7.5 px that the silhouette fit stopped on.
-    The offsets inside the disk all read r at the same fraction of a row: r is interpolated
-    once on that shifted grid and the minimum taken over a sliding window of it.
     Returns rho_c^2 (0 where there is no core) on z0 + t + j dz, as many rows as ``rho_sq``."""
     rho_sq = np.asarray(rho_sq, float)
     t = float(thickness)
     n = rho_sq.size
     k = int(np.ceil(t / dz))
-    m = np.arange(-k, k + 1)
-    m = m[np.abs(dz * m) < t]  # grid offsets inside the disk (contiguous)
-    cap = np.sqrt(np.maximum(t * t - (dz * m) ** 2, 0.0))
-
-    def radius(f):  # r at grid coordinate f (clipped to the table)
-        f = np.minimum(f, n - 1.0)
+    s = dz * np.arange(-k, k + 1)
+    s = np.concatenate([[-t], s[np.abs(s) < t], [t]])
+    cap = np.sqrt(np.maximum(t * t - s * s, 0.0))
+    base = (t + s) / dz  # grid coordinate of z + s for the core row j = 0
+    out = np.empty(n)
+    # blocks of ~64k table entries: the temporaries stay in the cache (3x faster than 2M-entry
+    # blocks; the same numbers)
+    step = max(1, 65536 // s.size)
+    for j0 in range(0, n, step):
+        f = np.minimum(np.arange(j0, min(n, j0 + step))[:, None] + base[None, :], n - 1.0)
         i = np.minimum(f.astype(np.intp), n - 2)
         w = f - i
-        return np.sqrt(np.maximum(rho_sq[i] * (1.0 - w) + rho_sq[i + 1] * w, 0.0))
-
-    j = np.arange(n, dtype=float)
-    out = np.minimum(radius(j), radius(j + 2.0 * t / dz))  # the disk's ends, s = -t and +t
-    if m.size:
-        # core row j, offset m reads r at j + t / dz + m = q + a0 with q = j + m - m[0] >= 0
-        g = radius(np.arange(n + m.size - 1, dtype=float) + (t / dz + m[0]))
-        step = max(1, 2_000_000 // m.size)  # bounded memory
-        win = np.lib.stride_tricks.sliding_window_view(g, m.size)
-        for j0 in range(0, n, step):
-            out[j0 : j0 + step] = np.minimum(out[j0 : j0 + step], (win[j0 : j0 + step] - cap).min(axis=1))
+        r = np.sqrt(np.maximum(rho_sq[i] * (1.0 - w) + rho_sq[i + 1] * w, 0.0))
+        out[j0 : j0 + step] = (r - cap[None, :]).min(axis=1)
     return np.square(np.maximum(out, 0.0))
