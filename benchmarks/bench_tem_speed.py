@@ -13,8 +13,9 @@ calibrated TIFF and read back (``read_tem_image``), then ``extract_profile`` wit
 defaults.
 
 Every tree runs in its own process (PYTHONPATH set to it) on one thread; the processes alternate,
-``--repeats`` times, and the least time per image counts (the machine is shared: the minimum is
-the least disturbed run; compare the ratio, not the absolute seconds).  ``--baseline-rev`` makes
+``--repeats`` times, and the least time per image counts.  Times are the process's CPU time
+(``time.process_time``: one thread, so the work of one core without the waits of a shared
+machine; contention still inflates it, so compare the ratio, not the absolute seconds).  ``--baseline-rev`` makes
 a temporary ``git worktree`` of that revision and removes it afterwards.
 
 Prints per image: seconds (baseline, this tree, ratio), the LM iterations (equal: the same
@@ -119,12 +120,12 @@ class _PhaseTimer:
         fn = getattr(owner, attr)
 
         def timed(*a, **k):
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             self.stack.append(0.0)
             try:
                 return fn(*a, **k)
             finally:
-                dt = time.perf_counter() - t0
+                dt = time.process_time() - t0
                 inner = self.stack.pop()
                 self.t[phase] += dt - inner
                 if self.stack:
@@ -156,11 +157,11 @@ def worker(paths):
     out = {}
     for path in paths:
         timer.t = dict.fromkeys(PHASES, 0.0)
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         image = read_tem_image(path)
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         prof = extract_profile(image)
-        t2 = time.perf_counter()
+        t2 = time.process_time()
         phases = dict(timer.t, read=t1 - t0)
         phases["rest"] = (t2 - t1) - sum(v for k, v in phases.items() if k not in ("read", "rest"))
         out[path] = dict(total=t2 - t0, iterations=prof.edge_model.get("global_iterations"), phases=phases)
@@ -186,7 +187,7 @@ def _best(runs, path):
 
 
 def report(paths, base_runs, new_runs, label):
-    print(f"\nseconds per image (least of {len(new_runs)} runs each; one core), baseline = {label}")
+    print(f"\nCPU seconds per image (least of {len(new_runs)} runs each; one thread), baseline = {label}")
     head = f"{'image':24s} {'base s':>7s} {'this s':>7s} {'ratio':>6s} {'iter':>9s} |"
     print(head + "".join(f" {p:>7s}" for p in PHASES))
     for name, path in paths.items():
