@@ -8,7 +8,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
-from pipeline.tem.projection import chord, chord_sq, core_radius_sq_table
+from pipeline.tem.projection import chord, core_radius_sq_table
 
 # pixel integration: the projected thickness has a square-root kink at a silhouette, which
 # the midpoint rule samples poorly; pixels whose centre lies within _FINE_PX of a silhouette
@@ -57,6 +57,18 @@ def reference_curve(pts_tip, step=0.25, smooth_px=2.0):
     return S, x, z, tz / nn, -tx / nn
 
 
+def _extreme_cover(lo, hi, seg, n_levels, fill, reduce):
+    """Per level index in [0, n_levels): ``reduce`` (np.minimum / np.maximum) of the ``seg``
+    whose range [lo, hi) holds it, ``fill`` where none does."""
+    cnt = np.maximum(hi - lo, 0)
+    out = np.full(n_levels, fill)
+    total = int(cnt.sum())
+    if total:
+        start = np.repeat(lo - (np.cumsum(cnt) - cnt), cnt)
+        reduce.at(out, start + np.arange(total), np.repeat(seg, cnt))
+    return out
+
+
 class _Body:
     """Cross-section tables of the body bounded by a (left -> right) meridian polyline.
 
@@ -93,14 +105,19 @@ class _Body:
         lv = (self.zg >= zh[dip].min() - self.dz) & (self.zg <= rm[dip].max() + self.dz)
         zg = self.zg[lv]
         xh, zh = xh[: dip[-1] + 2], zh[: dip[-1] + 2]
-        below = zh[None, :] <= zg[:, None]  # (levels, points)
-        up = below[:, :-1] & ~below[:, 1:]  # leaves the sublevel set between i and i+1
-        down = ~below[:, :-1] & below[:, 1:]  # re-enters it
-        has = down.any(1) & up.any(1)
+        # segment i leaves the sublevel set {z <= level} (up) for the levels in
+        # [z_i, z_i+1), re-enters it (down) for those in [z_i+1, z_i): per level the first
+        # up and the last down segment (level index ranges by bisection, no levels x points table)
+        q = np.searchsorted(zg, zh, side="left")
+        nseg = zh.size - 1
+        seg = np.arange(nseg)
+        first_up = _extreme_cover(q[:-1], q[1:], seg, zg.size, nseg, np.minimum)
+        last_dn = _extreme_cover(q[1:], q[:-1], seg, zg.size, -1, np.maximum)
+        has = (first_up < nseg) & (last_dn >= 0)
         if not has.any():
             return None
-        i_up = np.argmax(up, 1)
-        i_dn = down.shape[1] - 1 - np.argmax(down[:, ::-1], 1)
+        i_up = np.where(first_up < nseg, first_up, 0)
+        i_dn = np.where(last_dn >= 0, last_dn, nseg - 1)
         has &= i_dn > i_up
 
         def cross(i):
@@ -130,34 +147,73 @@ class _Body:
 
     def chords(self, x, z, core=True):
         """(t_outer, t_core) at tip-frame points (px); t_core only if ``core``."""
-        f = (z - self.zg[0]) / self.dz
-        below = f < 0
-        f = np.clip(f, 0.0, self.zg.size - 1.000001)
-        i = f.astype(np.intp)
-        w = f - i
-        cen = self.cen[i] * (1 - w) + self.cen[i + 1] * w
-        xx = x - cen
+        core = core and self.coat > 0
+        below, i, i1, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
+        xx = x - _lerp(self.cen, i, i1, w, w1)
         # rho^2 is interpolated between the table rows, not rho: it is linear in z at a
         # paraboloidal apex and far less curved than rho(z) ~ z^(1/n) on a flatter one, whose
         # radius jumps from 0 to the face within a fraction of a row (rho interpolated
         # linearly put a noise-free coated n 4 apex 0.045 nm off, rho^2 0.01 nm)
-        rho2 = self.rho2[i] * (1 - w) + self.rho2[i + 1] * w
-        t_o = np.where(below, 0.0, chord_sq(rho2, xx))
+        t_o = _chord_in_place(_lerp(self.rho2, i, i1, w, w1), xx, below)
         for rad, hc, lo, hi in self.holes:
             j = np.nonzero((i >= lo) & (i < hi) & ~below)[0]
             ij, wj = i[j], w[j]
             r_h = rad[ij] * (1 - wj) + rad[ij + 1] * wj
             c_h = hc[ij] * (1 - wj) + hc[ij + 1] * wj
             t_o[j] = np.maximum(t_o[j] - chord(r_h, x[j] - c_h), 0.0)
-        if not core or self.coat <= 0:
+        if not core:
             return t_o, t_o
-        fc = (z - self.zc0) / self.dz
-        below_c = fc < 0
-        fc = np.clip(fc, 0.0, self.rho_c2.size - 1.000001)
-        ic = fc.astype(np.intp)
-        wc = fc - ic
-        rc2 = self.rho_c2[ic] * (1 - wc) + self.rho_c2[ic + 1] * wc
-        return t_o, np.where(below_c, 0.0, chord_sq(rc2, xx))
+        return t_o, self._core(z, xx)
+
+    def core_chords(self, x, z):
+        """t_core alone at tip-frame points (px) (the outer body's centre line is needed)."""
+        below, i, i1, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
+        return self._core(z, x - _lerp(self.cen, i, i1, w, w1))
+
+    def _core(self, z, xx):
+        below, i, i1, w, w1 = _rows(z, self.zc0, self.dz, self.rho_c2.size)
+        return _chord_in_place(_lerp(self.rho_c2, i, i1, w, w1), xx, below)
+
+
+def _beer_lambert(t_o, t_c, k_o, k_c):
+    """exp(-(k_o t_o + (k_c - k_o) t_c)); the second term (+0) skipped for one layer (k_c = k_o)."""
+    a = k_o * t_o
+    if k_c != k_o:
+        a += (k_c - k_o) * t_c
+    np.negative(a, out=a)
+    return np.exp(a, out=a)
+
+
+def _rows(z, z0, dz, n):
+    """(below the table, row i, i + 1, weight w of row i + 1, 1 - w) of linear interpolation at
+    heights ``z`` in a table of ``n`` rows z0 + j dz (clipped to its ends)."""
+    f = z - z0
+    f /= dz
+    below = f < 0
+    np.clip(f, 0.0, n - 1.000001, out=f)
+    i = f.astype(np.intp)
+    f -= i
+    return below, i, i + 1, f, 1 - f
+
+
+def _lerp(table, i, i1, w, w1):
+    """table[i] (1 - w) + table[i + 1] w (``_rows``), in one buffer."""
+    out = table[i]
+    out *= w1
+    b = table[i1]
+    b *= w
+    out += b
+    return out
+
+
+def _chord_in_place(r2, xx, below):
+    """``projection.chord_sq(r2, xx)`` (0 where ``below``), computed in ``r2``'s buffer."""
+    r2 -= np.square(xx)
+    np.maximum(r2, 0.0, out=r2)
+    np.sqrt(r2, out=r2)
+    r2 *= 2.0
+    r2[below] = 0.0
+    return r2
 
 
 class _Problem:
@@ -222,6 +278,7 @@ class _Problem:
         self.noise = noise
         self.w = np.ones(self.idx.size)
         self.map_c = None
+        self.tiles = _blur_tiles(self.idx, self.shape)
 
     def set_reference(self, curve):
         """Reference meridian (S, x, z, nx, nz) and its B-spline basis (knots every D)."""
@@ -236,6 +293,7 @@ class _Problem:
             (val.ravel(), (np.repeat(np.arange(S.size), 4), idx.ravel())), shape=(S.size, self.K)
         ).toarray()
         self.map_c = None
+        self.version = getattr(self, "version", 0) + 1  # (map, weights, reference) changed
 
     def rebase(self, c):
         """Make the curve of offsets ``c`` the new reference (offsets then start at 0): the
@@ -293,26 +351,35 @@ class _Problem:
         n = idx.shape[0]
         self.Phi = sparse.csr_matrix((val.ravel(), (np.repeat(np.arange(n), 4), idx.ravel())), shape=(n, self.K))
         self.map_c, self.map_coat = c.copy(), float(coat)
+        self.version = getattr(self, "version", 0) + 1
 
     def map_stale(self, c, coat):
         # B-splines are >= 0 and sum to 1: no curve point moved more than max |dc|
         return self.map_c is None or np.max(np.abs(c - self.map_c)) > 0.6 or abs(coat - self.map_coat) > 0.6
 
     # ------------------------------------------------------------------ forward model
-    def chords(self, c, coat, sub=None):
+    def chords(self, c, coat, sub=None, outer=None):
         """Chords (t_o, t_c) at the needed pixel centres, and at sub-samples of the pixels near
         the outer or core silhouette (T is averaged there, where it has the square-root kink):
         8 x 8 within _FINE_PX, 4 x 4 up to _BAND_PX.  Returns (t_o, t_c, bands), bands a list
         of (pixel indices, sub-sample t_o, sub-sample t_c, sub-samples per pixel).  ``sub``
-        (indices into the needed pixels): only those, with band indices local to ``sub``."""
+        (indices into the needed pixels): only those, with band indices local to ``sub``.
+        ``outer``: (chords of this ``c`` for another layer thickness, the ``version`` they were
+        made on): their outer chords are taken as they are if the pixel map is still that one."""
         if self.map_stale(c, coat):
             self.update_pixel_map(c, coat)
+        if outer is not None:
+            outer = outer[0] if outer[1] == self.version else None
         x, z = self.curve(c)
         body = _Body(x, z, coat)
         xc, zc, dist = self.nx_, self.nz_, self.dist_need
         if sub is not None:
             xc, zc, dist = xc[sub], zc[sub], dist[sub]
-        t_o, t_c = body.chords(xc, zc)
+        if outer is None:
+            t_o, t_c = body.chords(xc, zc)
+        else:
+            t_o = outer[0]
+            t_c = body.core_chords(xc, zc) if body.coat > 0 else t_o
         # the bands are fixed between updates of the distance map (the model must be smooth
         # in the parameters for the finite differences)
         sd = np.where(t_o > 0, -dist, dist)
@@ -320,31 +387,48 @@ class _Problem:
         if self.map_coat > 0:
             near = np.minimum(near, np.abs(sd + self.map_coat))
         bands = []
-        for (sx, sz), sel in zip(self.sub, (near < _FINE_PX, (near >= _FINE_PX) & (near < _BAND_PX))):
+        for k, ((sx, sz), sel) in enumerate(zip(self.sub, (near < _FINE_PX, (near >= _FINE_PX) & (near < _BAND_PX)))):
             bi = np.nonzero(sel)[0]
             xs = (xc[bi, None] + sx[None, :]).ravel()
             zs = (zc[bi, None] + sz[None, :]).ravel()
-            s_o, s_c = body.chords(xs, zs)
+            if outer is None:
+                s_o, s_c = body.chords(xs, zs)
+            else:
+                s_o = outer[2][k][1]
+                s_c = body.core_chords(xs, zs) if body.coat > 0 else s_o
             bands.append((bi, s_o, s_c, sx.size))
         return (t_o, t_c, bands)
 
     @staticmethod
     def transmission(ch, k_o, k_c):
         t_o, t_c, bands = ch
-        T = np.exp(-(k_o * t_o + (k_c - k_o) * t_c))
+        T = _beer_lambert(t_o, t_c, k_o, k_c)
         for bi, s_o, s_c, m in bands:
             if bi.size:
-                T[bi] = np.exp(-(k_o * s_o + (k_c - k_o) * s_c)).reshape(-1, m).mean(1)
+                T[bi] = _beer_lambert(s_o, s_c, k_o, k_c).reshape(-1, m).mean(1)
         return T
 
     def blurred(self, T, sigma):
-        """Columns (Npix, 3): blur(T), blur(T) x row, blur(T) x col at the residual pixels."""
+        """Columns (Npix, 3): blur(T), blur(T) x row, blur(T) x col at the residual pixels.
+
+        The blur of the rectangle is computed only on the tiles that hold residual pixels, each
+        widened by the kernel radius (cut at the rectangle's sides, where the "nearest"
+        extension is the rectangle's own): the same numbers at those pixels as one blur of
+        the whole rectangle (the separable passes read nothing outside the widened tile)."""
         img = np.ones(self.shape[0] * self.shape[1])
         img[self.need] = T
         img = img.reshape(self.shape)
         if sigma > 0.05:
-            img = ndimage.gaussian_filter(img, sigma, mode="nearest", truncate=4.0)
-        bt = img.ravel()[self.idx]
+            rad, k = _gauss_kernel(sigma)
+            H, W = self.shape
+            bt = np.empty(self.idx.size)
+            for sel, rr, cc, (r0, r1, c0, c1) in self.tiles:
+                a0, b0 = max(0, r0 - rad), max(0, c0 - rad)
+                blk = ndimage.correlate1d(img[a0 : min(H, r1 + rad), b0 : min(W, c1 + rad)], k, 0, mode="nearest")
+                blk = ndimage.correlate1d(blk[r0 - a0 : r1 - a0], k, 1, mode="nearest")  # the tile's rows only
+                bt[sel] = blk[rr - r0, cc - b0]
+        else:
+            bt = img.ravel()[self.idx]
         return np.column_stack([bt, bt * self.rn, bt * self.cn])
 
     def linear(self, B):
@@ -355,6 +439,32 @@ class _Problem:
         """Poisson weights 1/sd with sd = noise x sqrt(model / background) (flattened image)."""
         m = np.clip(model, 0.05, None)
         self.w = 1.0 / (self.noise * np.sqrt(m))
+        self.version = getattr(self, "version", 0) + 1
+
+
+def _gauss_kernel(sigma, truncate=4.0):
+    """(radius, weights) of ``ndimage.gaussian_filter``'s 1-D kernel (same numbers)."""
+    rad = int(truncate * float(sigma) + 0.5)
+    x = np.arange(-rad, rad + 1)
+    phi = np.exp(-0.5 / (sigma * sigma) * x**2)
+    return rad, (phi / phi.sum())[::-1]
+
+
+def _blur_tiles(idx, shape, rows=64, gap=48):
+    """Tiles of the residual pixels ``idx`` (flat indices into ``shape``) for ``_Problem.blurred``:
+    strips of ``rows`` rows, split where a strip's pixels leave more than ``gap`` columns free
+    (the two flanks); each (positions in ``idx``, their rows, their columns, (row0, row1, col0,
+    col1) of the tile, ends exclusive)."""
+    rr, cc = np.divmod(idx, shape[1])
+    tiles = []
+    for s in np.unique(rr // rows):
+        sel = np.nonzero(rr // rows == s)[0]
+        sel = sel[np.argsort(cc[sel], kind="stable")]
+        cut = np.nonzero(np.diff(cc[sel]) > gap)[0] + 1
+        for part in np.split(sel, cut):
+            r, c = rr[part], cc[part]
+            tiles.append((part, r, c, (int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1)))
+    return tiles
 
 
 def _axis_attenuation(img, frame, curve, background=1.0):

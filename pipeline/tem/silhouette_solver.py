@@ -16,6 +16,7 @@ GLOBAL_EPS = 4e-3  # central-difference step of the global columns of the exact 
 # constraint (100) pushes a noisy face outwards and none (0) lets it sink inwards; 20
 # leaves the least bias in n over blunt tips at SNR 10-15 (n 4.6-6: mean |dn| 0.03 -> 0.01)
 MONOTONE_WEIGHT = 20.0
+STATE_CACHE = 12  # evaluated states kept per fitter (the coating search ranks up to 10 starts)
 
 
 @dataclass
@@ -27,6 +28,7 @@ class _State:
     B: np.ndarray
     lin: np.ndarray
     res: np.ndarray
+    version: int = 0  # the problem's version (pixel map, weights, reference) it was made on
 
 
 class _Fitter:
@@ -52,6 +54,7 @@ class _Fitter:
         self.Az = prob.Bc[a] * prob.nz[a, None] - prob.Bc[b] * prob.nz[b, None]
         self.bz = prob.z0[a] - prob.z0[b]
         self.mu = mu
+        self._cache, self._cache_version = {}, None  # evaluated states (``evaluate``)
 
     def unpack(self, v):
         K = self.K
@@ -68,16 +71,30 @@ class _Fitter:
         J = np.vstack([self.L2, self.mu * self.Az * neg[:, None]])
         return r, J
 
-    def evaluate(self, v, ch=None):
+    def evaluate(self, v):
+        """The state at parameters ``v``.  The last few are kept while the problem's pixel map,
+        weights and reference stay the same (``_Problem.version``) and the map is not stale at
+        ``v``: a run that starts where another stopped, or from a start already ranked, gets the
+        same state without rendering it again."""
         c, sigma, k_o, k_c, coat = self.unpack(v)
-        if ch is None:
-            ch = self.p.chords(c, coat)
+        key = v.tobytes()
+        if self._cache_version != self.p.version:
+            self._cache, self._cache_version = {}, self.p.version
+        if key in self._cache and not self.p.map_stale(c, coat):
+            return self._cache[key]
+        ch = self.p.chords(c, coat)
         T = self.p.transmission(ch, k_o, k_c)
         B = self.p.blurred(T, sigma)
         lin = self.p.linear(B)
         res = (self.p.I - B @ lin) * self.p.w
         pr, _ = self.penalty(c)
-        return _State(v, float(res @ res + pr @ pr), ch, T, B, lin, res)
+        st = _State(v, float(res @ res + pr @ pr), ch, T, B, lin, res, self.p.version)
+        if self._cache_version != self.p.version:  # the map was updated for v
+            self._cache, self._cache_version = {}, self.p.version
+        if len(self._cache) >= STATE_CACHE:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[key] = st
+        return st
 
     def jacobian(self, st: _State, with_shape=True, central=False):
         """Weighted Jacobian of the residuals: G (Npix,), the column of a uniform outward
@@ -98,7 +115,7 @@ class _Fitter:
         G = None
         if with_shape:
             eps = 0.05
-            ch = p.chords(c + eps, coat)  # partition of unity: all c + eps = uniform offset
+            ch = p.chords(c + eps, coat)  # partition of unity: c + eps = uniform offset
             G = col(p.blurred(p.transmission(ch, k_o, k_c), sigma)) / eps
         models = [lambda e: p.blurred(st.T, sigma * np.exp(e))]
         names = ["log_sigma"]
@@ -106,7 +123,10 @@ class _Fitter:
             models += [
                 lambda e: p.blurred(p.transmission(st.ch, k_o * np.exp(e), k_c), sigma),
                 lambda e: p.blurred(p.transmission(st.ch, k_o, k_c * np.exp(e)), sigma),
-                lambda e: p.blurred(p.transmission(p.chords(c, coat * np.exp(e)), k_o, k_c), sigma),
+                lambda e: p.blurred(
+                    p.transmission(p.chords(c, coat * np.exp(e), outer=(st.ch, st.version)), k_o, k_c),
+                    sigma,
+                ),
             ]
             names += ["log_k_o", "log_k_c", "log_coat"]
         else:
