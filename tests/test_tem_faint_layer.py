@@ -95,3 +95,16 @@ def test_faint_layer_is_written_with_units(cases, tmp_path):
             ("core_attenuation", "1/m"),
         ):
             assert g[name].attrs["units"] == unit
+
+
+def test_a_model_body_outside_the_fitted_pixels_is_said_in_words():
+    """Grid image 35 of bench_tem_independent (a 16.6 nm DLC layer of contrast 0.09 at 0.1 nm px): the
+    fitted band holds only the layer's slow intensity ramp, the fitted body reaches none of its pixels
+    (transmission 1 everywhere), so blur and attenuation change nothing and J^T J is singular; the
+    flag says why instead of only "singular"."""
+    from types import SimpleNamespace
+
+    from pipeline.tem.silhouette_fit import _flat_model_words
+
+    assert "reaches none of the fitted pixels" in _flat_model_words(SimpleNamespace(T=np.ones(50)))
+    assert _flat_model_words(SimpleNamespace(T=np.linspace(0.4, 1.0, 50))) == ""

@@ -12,12 +12,11 @@ edge as the tip's.  This test looks there, in the image itself:
   layer only darkens) + ``FRINGE_NM``;
 - template: for a layer of normal thickness T over the fitted body (a body of revolution: section
   disk of the two flanks' mean radius, centred between them; the layer widens it by
-  T sqrt(1 + rho'^2)), the chord through the layer at each pixel (its rim softened by the fitted
-  blur: the chord averaged over T - sigma, T, T + sigma);
+  T sqrt(1 + rho'^2)), the chord through the layer at each pixel, blurred with the fitted Gaussian;
   the image is background x (1 - A x chord) for a layer attenuation A (1/px), linear in A for faint
   layers.  A is fitted by linear least squares together with the background (illumination: a
   quadratic in row and column, for the gradient and vignetting) and smooth edge tails (the body's
-  straight edge blurred by ``TAIL_SCALES_NM``, per flank: detector PSF tails, fringes), once for both
+  silhouette blurred by ``TAIL_SCALES_NM``, per flank: detector PSF tails, fringes), once for both
   flanks and once with an A per flank (same background);
 - noise: robust SD of the residuals, inflated by their pixel-to-pixel correlation (variance of 2 x 2
   block means against the white-noise value);
@@ -109,17 +108,16 @@ def _pixel_geometry(shape, corner, frame, geo):
     )
 
 
-def _templates(pix, valid, t_px, sigma):
-    """Chord (px) through a layer of normal thickness ``t_px`` over the fitted body at the valid
-    pixels, one array per thickness.  The pixels lie >= 3 sigma + 2 px beyond the body, where its
-    own blur is spent; the layer's outer rim is softened by the fitted blur (the chord averaged over
-    the thicknesses T - sigma, T, T + sigma, weights 1, 2, 1)."""
-    z, xc, rho, slope = (q[valid] for q in pix)
-    w = np.sqrt(1.0 + slope**2)
+def _templates(pix, t_px, sigma):
+    """Blurred chord (px) through a layer of normal thickness ``t_px`` over the fitted body at every
+    pixel of the region: one map per thickness."""
+    z, xc, rho, slope = pix
+    inside = np.sqrt(np.clip(rho**2 - xc**2, 0, None))
     out = []
     for t in t_px:
-        ch = [2.0 * np.sqrt(np.clip((rho + (t + dt) * w) ** 2 - xc**2, 0, None)) for dt in (-sigma, 0.0, sigma)]
-        out.append((ch[0] + 2.0 * ch[1] + ch[2]) / 4.0)
+        th = t * np.sqrt(1.0 + slope**2)
+        ch = 2.0 * (np.sqrt(np.clip((rho + th) ** 2 - xc**2, 0, None)) - inside)
+        out.append(ndimage.gaussian_filter(ch, sigma, mode="nearest"))
     return out
 
 
@@ -138,7 +136,7 @@ def _noise_correlation(res_map, valid):
 
 
 def _normal_equations(vals, nuisance):
-    """The nuisance columns (scaled to unit maximum; those that vanish this far out dropped) and
+    """The nuisance columns (scaled to unit maximum; tails that vanish this far out dropped) and
     their blocks N^T N, N^T v of the normal equations, shared by every template."""
     ns = np.abs(nuisance).max(axis=0)
     keep = ns > 1e-6 * ns.max()
@@ -169,16 +167,15 @@ def _amplitude(vals, shared, g, side):
     return out
 
 
-def _edge_tails(d, side, plane, scales_px):
+def _edge_tails(pix, side, valid, plane, scales_px):
     """Nuisance columns for what lies just outside the fitted edge besides a layer (the detector
     PSF's tail, a Fresnel fringe, a blur the Gaussian does not describe): the body's silhouette
-    blurred by each of ``scales_px`` (a straight edge: erfc of the normal distance ``d``), on each
-    flank separately."""
-    from scipy.special import erfc
-
+    blurred by each of ``scales_px``, on each flank separately, at the valid pixels."""
+    z, xc, rho, slope = pix
+    body = (xc < rho).astype(float)
     cols = []
     for sc in scales_px:
-        b = 0.5 * erfc(d / (np.sqrt(2.0) * sc)) * plane
+        b = ndimage.gaussian_filter(body, sc, mode="nearest")[valid] * plane
         cols += [b * (side < 0), b * (side > 0)]
     return np.column_stack(cols)
 
@@ -276,12 +273,12 @@ def _test_and_limit(data, pix, d, valid, t_px, ctx):
     res_map = np.zeros(data.shape)
     res_map[valid] = res
     s_eff = s_noise * np.sqrt(_noise_correlation(res_map, valid))
-    maps = _templates(pix, valid, t_px, sigma_px)
-    tails = _edge_tails(d[valid], side_x, plane, [s_nm * 1e-9 / px for s_nm in TAIL_SCALES_NM])
+    maps = _templates(pix, t_px, sigma_px)
+    tails = _edge_tails(pix, side_x, valid, plane, [s_nm * 1e-9 / px for s_nm in TAIL_SCALES_NM])
     shared = _normal_equations(vals, np.column_stack([plane_cols, tails]))
     rows = []
     for t, g in zip(t_px, maps):
-        (a, s), (al, sl_), (ar, sr) = _amplitude(vals, shared, -plane * g, side_x)
+        (a, s), (al, sl_), (ar, sr) = _amplitude(vals, shared, -plane * g[valid], side_x)
         rows.append((t, a, s * s_eff, al, sl_ * s_eff, ar, sr * s_eff))
     # the core's attenuation: through the axis where that can be read, else the fitted body's
     R_all, C_all = np.mgrid[0 : data.shape[0], 0 : data.shape[1]]
