@@ -56,7 +56,14 @@ def plot_profile(image, profile, out_png, title=""):
     ax.set_title(
         f"profile, asymmetry {profile.asymmetry_mean * 1e9:+.2f} nm (rms {profile.asymmetry_rms * 1e9:.2f})", fontsize=9
     )
-    fig.tight_layout()
+    note = (profile.edge_model.get("faint_layer") or {}).get("note", "")
+    if note:
+        import textwrap
+
+        fig.text(0.01, 0.01, "\n".join(textwrap.wrap(note, 150)), fontsize=7, va="bottom")
+        fig.tight_layout(rect=(0, 0.07, 1, 1))
+    else:
+        fig.tight_layout()
     with h5io.atomic_output(out_png) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)

@@ -2,7 +2,7 @@
 (:func:`read_profile`, used by stage 2): the only place the profile file's layout is spelled.
 
 Profile file layout: /image, /edge, /axis, /profile/{left,right,combined} (r, z, [flank],
-[offset_basis, normal_rz]; /profile/offset_cov), /asymmetry, /edge_model.
+[offset_basis, normal_rz]; /profile/offset_cov), /asymmetry, /edge_model (/edge_model/faint_layer).
 """
 
 from __future__ import annotations
@@ -107,6 +107,8 @@ def _write_edge_model(f, image, profile):
     ct = em.get("coating_test") or {}
     if ct:
         _write_coating_test(g, ct, image.pixel_size)
+    if em.get("faint_layer"):
+        _write_faint_layer(g, em["faint_layer"])
     if "global_chi2_red" in em:
         w(g, "chi2_reduced", em["global_chi2_red"], "1", "reduced chi^2 of the silhouette fit")
         w(g, "n_pixels", em["global_n_pixels"], "1", "pixels in the silhouette fit")
@@ -155,6 +157,34 @@ def _write_coating_test(g, ct, px):
             "largest outward edge shift of a light layer that fits within the threshold of none "
             "(half of it is added to the edge covariance as a common offset SD)",
         )
+
+
+def _write_faint_layer(g, fl):
+    """Group /edge_model/faint_layer: the test for a faint layer beyond the fitted edge and the
+    detection limit (``pipeline.tem.faint_layer``); ``note`` (attribute) says it in words."""
+    w = h5io.write_dataset
+    sg = h5io.create_group(g, "faint_layer", description="faint outer layer beyond the fitted edge; detection limit")
+    sg.attrs["tested"] = bool(fl.get("tested", False))
+    sg.attrs["found"] = bool(fl.get("found", False))
+    sg.attrs["note"] = fl.get("note", "")
+    if not fl.get("tested"):
+        return
+    w(sg, "start", fl["start"], "m", "distance beyond the fitted edge from which layers are tested")
+    w(sg, "thickness", fl["thickness"], "m", "layer thicknesses (beyond the fitted edge) tested")
+    w(
+        sg,
+        "contrast_limit",
+        fl["contrast_limit"],
+        "1",
+        "layer/core attenuation ratio a layer of each thickness needs to be seen with 90 % probability",
+    )
+    w(sg, "z_both", fl["z_both"], "1", "fitted layer attenuation / its SE, both flanks together")
+    w(sg, "z_left", fl["z_left"], "1", "the same, left flank (shared background)")
+    w(sg, "z_right", fl["z_right"], "1", "the same, right flank (shared background)")
+    w(sg, "core_attenuation", fl["core_attenuation"], "1/m", "the core's attenuation the contrasts refer to")
+    if fl.get("found"):
+        w(sg, "found_thickness", fl["found_thickness"], "m", "thickness of the layer seen, beyond the fitted edge")
+        w(sg, "found_contrast", fl["found_contrast"], "1", "its attenuation relative to the core's")
 
 
 def read_profile(profile_h5):

@@ -181,6 +181,19 @@ def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine):
     return pts, frame, edge_model, extra, uncertainty
 
 
+def _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra):
+    """``faint_layer.faint_layer_test`` on the fitted edge; a layer it sees is also a flag."""
+    from pipeline.tem.faint_layer import faint_layer_test
+
+    coated = edge_model["coat_px"] > 0
+    k_body = edge_model["k_core"] if coated else edge_model["k_outer"]
+    model = (extra.get("coating_test") or {}).get("model", "single")
+    out = faint_layer_test(img, origin, pts, frame, edge_model["sigma_px"], k_body, hpx, px, coat_model=model)
+    if out.get("found"):
+        extra["global_flags"] = list(extra.get("global_flags", [])) + [out["note"]]
+    return out
+
+
 def _edge_uncertainty(uncertainty, keep, x, px, frame):
     """The kept points' edge-offset basis, the offsets' covariance (m^2) and the outward
     normals in (r, z) (all None without the silhouette fit's ``uncertainty``)."""
@@ -232,6 +245,8 @@ def extract_profile(
     pts, frame, edge_model, extra, uncertainty = _refined_edge(
         win, flat, noise, cont, frame, hpx, px, coat_hint, refine
     )
+    if extra.get("refine") == "global":
+        extra["faint_layer"] = _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra)
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]

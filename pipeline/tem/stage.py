@@ -37,4 +37,7 @@ def run_profiles(
         image, orientation=orientation, profile_height=profile_height, coating=coating, refine=refine
     )
     write_profile_h5(out_h5, image, profile, tip=tip, interval=interval)
+    fl = profile.edge_model.get("faint_layer") or {}
+    if fl.get("note"):
+        print(f"{image_path}: {fl['note']}")  # the job's log
     plot_profile(image, profile, out_png, title=f"{tip} {interval}".strip())
