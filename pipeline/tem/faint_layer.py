@@ -58,6 +58,8 @@ VACUUM_MARGIN_NM = 6.0  # vacuum beyond the thickest layer tested, for the illum
 FRINGE_NM = 1.5  # left out beyond the edge's blur: Fresnel fringes (sqrt(lambda df) ~ 1-2 nm at 0.5-2 um)
 TAIL_SCALES_NM = (0.7, 1.5)  # edge-tail nuisance blurs (nm): PSF tails, Fresnel fringes (~sqrt(lambda df))
 SATURATED_MAX = 0.05  # share of the tested pixels at the image's maximum above which the vacuum is clipped
+TEST_PIXEL_NM = 0.4  # finer images are tested on b x b block means (b = floor(0.4 nm / pixel)): a 1-20 nm
+# layer's template is smooth on that scale, and the test's cost no longer grows with the pixel count
 
 
 def _flank_geometry(pts, frame, hpx):
@@ -80,24 +82,38 @@ def _flank_geometry(pts, frame, hpx):
     return zg, centre, rho, slope
 
 
-def _region(img, origin, pts, extent):
+def _region(img, origin, pts, extent, b=1):
     """(row slice, column slice) of the image region around the edge points (window px) grown by
-    ``extent`` px, and the region's corner in window px."""
+    ``extent`` px, whole ``b`` x ``b`` blocks, and the region's corner in window px."""
     p = pts + origin
     r0 = int(max(0, np.floor(p[:, 0].min() - extent)))
     r1 = int(min(img.shape[0], np.ceil(p[:, 0].max() + extent) + 1))
     c0 = int(max(0, np.floor(p[:, 1].min() - extent)))
     c1 = int(min(img.shape[1], np.ceil(p[:, 1].max() + extent) + 1))
+    r1, c1 = r0 + (r1 - r0) // b * b, c0 + (c1 - c0) // b * b
     return (slice(r0, r1), slice(c0, c1)), np.array([r0, c0], float) - origin
 
 
-def _pixel_geometry(shape, corner, frame, geo):
+def _block_means(data, b):
+    """Means of the ``b`` x ``b`` blocks of ``data`` (its shape a multiple of b)."""
+    if b == 1:
+        return data
+    h, w = data.shape
+    return data.reshape(h // b, b, w // b, b).mean(axis=(1, 3))
+
+
+def _window_px(R, C, corner, b):
+    """Window px (row, column) of the centres of block-pixels (R, C) of the region."""
+    off = 0.5 * (b - 1)
+    return np.column_stack([np.ravel(R) * b + off + corner[0], np.ravel(C) * b + off + corner[1]])
+
+
+def _pixel_geometry(shape, corner, frame, geo, b=1):
     """Tip-frame height z, lateral distance from the section centre |x - c| and the section's
-    radius and slope at every pixel of the region (px)."""
+    radius and slope (all in image px) at every block-pixel (``b`` x ``b`` image px) of the region."""
     zg, centre, rho, slope = geo
     R, C = np.mgrid[0 : shape[0], 0 : shape[1]]
-    pts = np.column_stack([R.ravel() + corner[0], C.ravel() + corner[1]])
-    x, z = frame.to_tip(pts)
+    x, z = frame.to_tip(_window_px(R, C, corner, b))
     zc = np.clip(z, zg[0], zg[-1])
     xc = np.abs(x - np.interp(zc, zg, centre))
     return (
@@ -216,46 +232,51 @@ def faint_layer_test(img, origin, pts, frame, sigma_px, k_body, hpx, pixel_size,
     if geo is None or not (k_body > 0):
         return dict(tested=False, note="faint-layer test not done (too few edge points on a flank)")
     nm = 1e-9 / px
+    b = max(1, int(TEST_PIXEL_NM / (px * 1e9) + 1e-9))
     extent = 1.3 * max(THICKNESS_NM) * nm + 3 * sigma_px + VACUUM_MARGIN_NM * nm
-    sl, corner = _region(img, origin, np.asarray(pts, float), extent)
-    data = np.asarray(img[sl], float)
-    pix = _pixel_geometry(data.shape, corner, frame, geo)
+    sl, corner = _region(img, origin, np.asarray(pts, float), extent, b)
+    data = _block_means(np.asarray(img[sl], float), b)
+    pix = _pixel_geometry(data.shape, corner, frame, geo, b)
     z, xc, rho, slope = pix
-    d = (xc - rho) / np.sqrt(1.0 + slope**2)  # normal distance outside the fitted edge (px)
+    d = (xc - rho) / np.sqrt(1.0 + slope**2)  # normal distance outside the fitted edge (image px)
     band = (z >= Z_RANGE[0] * hpx) & (z <= Z_RANGE[1] * hpx)
     d_blur = 3.0 * sigma_px + 2.0
-    d0 = max(d_blur + FRINGE_NM * nm, _bright_reach(data, d, band, d_blur, nm) + FRINGE_NM * nm)
+    d0 = max(d_blur + FRINGE_NM * nm, _bright_reach(data, d, band, d_blur, nm, b) + FRINGE_NM * nm)
     t_px = [t * nm for t in THICKNESS_NM if t * nm >= d0 + 1.0]
     if not t_px:
         return dict(tested=False, note=f"faint-layer test not done (no layer thicker than {d0 / nm:.1f} nm tested)")
     valid = (d >= d0) & band
-    return _test_and_limit(data, pix, d, valid, t_px, (sigma_px, k_body, px, d0, corner, frame, coat_model, hpx))
+    # the blur in block-pixels: the fitted Gaussian's and the block average's (variance (b^2 - 1)/12 px^2)
+    sigma_b = float(np.sqrt(sigma_px**2 + (b * b - 1) / 12.0)) / b
+    ctx = (sigma_b, k_body, px, d0, corner, frame, coat_model, hpx, b)
+    return _test_and_limit(data, pix, d, valid, t_px, ctx)
 
 
-def _bright_reach(data, d, band, d_blur, nm):
-    """How far (px) beyond the fitted edge the image is significantly BRIGHTER than the vacuum further
-    out (a Fresnel fringe; a layer only darkens): the largest 1 px bin of distance within 6 nm whose
-    mean exceeds the vacuum 6-12 nm out by 4 SE (``d_blur`` where none does)."""
+def _bright_reach(data, d, band, d_blur, nm, b=1):
+    """How far (image px) beyond the fitted edge the image is significantly BRIGHTER than the vacuum
+    further out (a Fresnel fringe; a layer only darkens): the largest bin of distance (``b`` image px:
+    one block-pixel) within 6 nm whose mean exceeds the vacuum 6-12 nm out by 4 SE (``d_blur`` where
+    none does)."""
     far = band & (d >= d_blur + 6 * nm) & (d < d_blur + 12 * nm)
     if far.sum() < 50:
         return d_blur
     level, sd = float(np.median(data[far])), 1.4826 * float(np.median(np.abs(data[far] - np.median(data[far]))))
     near = band & (d >= d_blur) & (d < d_blur + 6 * nm)
-    k = np.floor(d[near] - d_blur).astype(int)
+    k = np.floor((d[near] - d_blur) / b).astype(int)
     n = np.bincount(k)
     mean = np.bincount(k, data[near]) / np.maximum(n, 1)
     # 2x the white-noise SE: neighbouring pixels are correlated (detector PSF)
     bright = (n >= 10) & (mean - level > 4.0 * 2.0 * sd / np.sqrt(np.maximum(n, 1)))
-    return d_blur + (float(np.nonzero(bright)[0].max()) + 1.0 if bright.any() else 0.0)
+    return d_blur + (b * (float(np.nonzero(bright)[0].max()) + 1.0) if bright.any() else 0.0)
 
 
 def _test_and_limit(data, pix, d, valid, t_px, ctx):
     """The fits of ``faint_layer_test`` over the valid pixels: result dict."""
-    sigma_px, k_body, px, d0, corner, frame, coat_model, hpx = ctx
+    sigma_b, k_body, px, d0, corner, frame, coat_model, hpx, b = ctx
     if valid.sum() < 200:
         return dict(tested=False, note="faint-layer test not done (too little vacuum beside the tip in the image)")
     R, C = np.nonzero(valid)
-    side_x, _ = frame.to_tip(np.column_stack([R + corner[0], C + corner[1]]))
+    side_x, _ = frame.to_tip(_window_px(R, C, corner, b))
     vals = data[valid]
     clipped = float(np.mean(vals >= data.max()))
     if clipped > SATURATED_MAX:
@@ -273,8 +294,8 @@ def _test_and_limit(data, pix, d, valid, t_px, ctx):
     res_map = np.zeros(data.shape)
     res_map[valid] = res
     s_eff = s_noise * np.sqrt(_noise_correlation(res_map, valid))
-    maps = _templates(pix, t_px, sigma_px)
-    tails = _edge_tails(pix, side_x, valid, plane, [s_nm * 1e-9 / px for s_nm in TAIL_SCALES_NM])
+    maps = _templates(pix, t_px, sigma_b)
+    tails = _edge_tails(pix, side_x, valid, plane, [s_nm * 1e-9 / px / b for s_nm in TAIL_SCALES_NM])
     shared = _normal_equations(vals, np.column_stack([plane_cols, tails]))
     rows = []
     for t, g in zip(t_px, maps):
