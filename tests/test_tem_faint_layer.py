@@ -97,6 +97,24 @@ def test_faint_layer_is_written_with_units(cases, tmp_path):
             assert g[name].attrs["units"] == unit
 
 
+def test_a_layer_seen_reaches_the_fit_and_the_inversion_notes(cases, tmp_path):
+    """What stage 1 says about the edge travels on: the fit file's notes carry it, and ``load_fit``
+    (the inversion's reader) gives it to the interval's notes; an uncoated tip carries none."""
+    from pipeline.fits.stage import run_fit
+    from pipeline.inversion.io import load_fit
+    from pipeline.tem.io import write_profile_h5
+
+    for layer in ("DLC", "none"):
+        c = cases[(SEEDS[0], layer)]
+        write_profile_h5(tmp_path / f"{layer}.h5", c["image"], c["profile"])
+        run_fit(tmp_path / f"{layer}.h5", tmp_path / f"fit_{layer}.h5")
+        notes = load_fit(tmp_path / f"fit_{layer}.h5")["edge_notes"]
+        if layer == "DLC":
+            assert any(x.startswith("a faint outer layer of ~") for x in notes), notes
+        else:
+            assert not any("faint outer layer" in x for x in notes), notes
+
+
 def test_a_model_body_outside_the_fitted_pixels_is_said_in_words():
     """Grid image 35 of bench_tem_independent (a 16.6 nm DLC layer of contrast 0.09 at 0.1 nm px): the
     fitted band holds only the layer's slow intensity ramp, the fitted body reaches none of its pixels

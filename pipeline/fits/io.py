@@ -24,6 +24,7 @@ from pipeline.tem import io as tem_io
 # the flank a fit group holds: group name
 GROUPS = (("combined", "fit"), ("left", "fit_left"), ("right", "fit_right"))
 PARABOLOID_GROUP = "fit_n2"
+EDGE_NOTE_PREFIX = "TEM edge: "  # the fit notes that repeat the stage-1 edge model's warnings
 
 
 def read_profile(profile_h5):
@@ -160,9 +161,10 @@ def load_fit(path) -> dict:
     """Read the stage-2 power-law fit of one interval (SI) from its HDF5 file (groups ``fit`` and,
     if stage 2 wrote it, ``fit_n2``: the paraboloid fit with n held at 2).
 
-    Returns n, u_n, ln_Q, Q (m^(n-1)), R (m), S, cov_n_lnQ (2x2), rms_residual (m), flags and
-    ``paraboloid`` (the n = 2 fit as a dict of the same keys, or None); a file without Q, ln_Q,
-    S or R (written by an older stage 2 or by hand) is read with those derived from the others.
+    Returns n, u_n, ln_Q, Q (m^(n-1)), R (m), S, cov_n_lnQ (2x2), rms_residual (m), flags,
+    ``edge_notes`` (stage 1's warnings about the edge, in words) and ``paraboloid`` (the n = 2 fit as
+    a dict of the same keys, or None); a file without Q, ln_Q, S or R (written by an older stage 2 or
+    by hand) is read with those derived from the others.
     """
     import h5py
 
@@ -187,6 +189,8 @@ def load_fit(path) -> dict:
             flags = [flags.decode() if isinstance(flags, bytes) else flags]
         flags = [str(x) for x in np.atleast_1d(flags) if str(x)]
         rms = read_value(g, "rms_residual", np.nan)
+        notes = np.atleast_1d(read_value(g, "notes", []))
+    edge_notes = [str(x.decode() if isinstance(x, bytes) else x) for x in notes]
     return {
         "n": n,
         "u_n": float(np.sqrt(max(cov[0, 0], 0.0))),
@@ -197,6 +201,7 @@ def load_fit(path) -> dict:
         "cov_n_lnQ": cov,
         "rms_residual": float(rms),
         "flags": flags,
+        "edge_notes": [x[len(EDGE_NOTE_PREFIX) :] for x in edge_notes if x.startswith(EDGE_NOTE_PREFIX)],
         "paraboloid": para,
     }
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipeline.fits.io import read_profile, write_fit_h5
+from pipeline.fits.io import EDGE_NOTE_PREFIX, read_profile, write_fit_h5
 from pipeline.fits.profile_fit import fit_power_law
 from pipeline.fits.result import FitError
 
@@ -49,4 +49,7 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
         )
     except FitError:
         para = None
+    # what stage 1 says about the edge (a faint layer beyond it, a coating it could not identify)
+    # travels with the fit, into the inversion's notes of the interval
+    fits["combined"].notes = [f"{EDGE_NOTE_PREFIX}{x}" for x in prof.get("edge_flags", [])] + fits["combined"].notes
     write_fit_h5(out_h5, fits, para, source=profile_h5, tip=tip, interval=interval)

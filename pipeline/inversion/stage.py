@@ -170,6 +170,7 @@ def _interval_notes(nm: str, shape: IntervalShape, fo: dict, dr: dict, complianc
     """What a reader of this interval's result must know, in words."""
     notes = (
         list(fo["warnings"])
+        + [f"TEM edge: {x}" for x in shape.fit.get("edge_notes", [])]
         + ([shape.note] if shape.note else [])
         + [x for x in fp_notes if x.startswith(f"interval {nm}:")]
     )

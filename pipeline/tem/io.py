@@ -188,8 +188,10 @@ def _write_faint_layer(g, fl):
 
 
 def read_profile(profile_h5):
-    """The profile file: ({"left"|"right"|"combined": (r, z, edge), "flank", "chi2_red", "n_pixels"},
-    pixel size (m)); edge is None or dict(edge_basis, edge_cov, normal_rz).  h5py's errors
+    """The profile file: ({"left"|"right"|"combined": (r, z, edge), "flank", "chi2_red", "n_pixels",
+    "edge_flags"}, pixel size (m)); edge is None or dict(edge_basis, edge_cov, normal_rz); edge_flags
+    the edge model's warnings in words (a coating not identifiable, a faint layer beyond the edge, a
+    singular covariance).  h5py's errors
     (FileNotFoundError, OSError, KeyError) pass through for the caller to word."""
     import h5py
 
@@ -207,5 +209,7 @@ def read_profile(profile_h5):
         em = f.get("edge_model")
         out["chi2_red"] = float(em["chi2_reduced"][()]) if em is not None and "chi2_reduced" in em else None
         out["n_pixels"] = float(em["n_pixels"][()]) if em is not None and "n_pixels" in em else None
+        flags = np.atleast_1d(em["flags"][()]) if em is not None and "flags" in em else []
+        out["edge_flags"] = [x.decode() if isinstance(x, bytes) else str(x) for x in flags if len(x)]
         px = float(f["image"]["pixel_size"][()])
         return out, px
