@@ -29,7 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage, optimize
+from scipy import ndimage
 
 from pipeline.tem.projection import chord, core_radius_table
 
@@ -517,6 +517,8 @@ class _GlobalSearch:
     def refine(self, p0, with_coat):
         lb, ub = (self.lb2, self.ub2) if with_coat else (self.lb1, self.ub1)
         p0 = np.clip(p0, np.add(lb, 1e-6), np.subtract(ub, 1e-6))
+        from scipy import optimize  # the "normals" refinement only: kept out of the profiles job's start-up
+
         res = optimize.least_squares(
             self.glob_resid, p0, args=(with_coat,), bounds=(lb, ub), diff_step=1e-3, max_nfev=20
         )
