@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_pipeline_run import run_snakemake  # noqa: E402
-from bench_startup import ENTRIES, entry_module, wall_time  # noqa: E402
+from bench_startup import ENTRIES, LOADS_TIP_CONFIG, entry_module, job_code, wall_time  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RULE_COMMAND = {
@@ -81,7 +81,11 @@ def main():
     ap.add_argument("--intervals", type=int, default=6)
     ap.add_argument("--cores", type=int, default=2)
     args = ap.parse_args()
-    startup = {cmd: wall_time(entry_module(c)) for cmd, c in ENTRIES.items() if entry_module(c)}
+    startup = {
+        cmd: wall_time(job_code(entry_module(c), cmd in LOADS_TIP_CONFIG))
+        for cmd, c in ENTRIES.items()
+        if entry_module(c)
+    }
     with tempfile.TemporaryDirectory(prefix="bench_many_") as tmp:
         tmp = Path(tmp)
         t0 = time.perf_counter()
