@@ -151,6 +151,13 @@ def test_bad_physical_inputs_raise():
             M.work_of_adhesion(1e-30, 3.0, Q, 1e11, 1 * NM, model=model)
         with pytest.raises(ValueError, match="Lambda outside"):
             M.work_of_adhesion(1e8, 3.0, Q, 1e11, 1 * NM, model=model)
+    # the elastic inverse of another law, and one bad element among good ones (Newton element by element)
+    assert np.isfinite(M.work_of_adhesion(1e-8, 3.0, Q, 1e11, 1 * NM, potential="lj", model="elastic"))
+    for F_bad in (1e-30, 1e8):
+        with pytest.raises(ValueError, match="Lambda outside"):
+            M.work_of_adhesion(np.array([1e-8, F_bad]), 3.0, Q, 1e11, 1 * NM, potential="lj", model="elastic")
+        with pytest.raises(ValueError, match="Lambda outside"):
+            M.work_of_adhesion(np.array([1e-8, F_bad]), 3.0, Q, 1e11, 1 * NM, model="mdn")
 
 
 def test_direct_solver_vs_brute_force_branch_minimum():

@@ -141,25 +141,43 @@ def _x_rigid(log_g, n, pot):
     return n / (2.0 * n - 1.0) * (log_g - np.log(rigid_pulloff_ratio(n, pot)) - 2.0 / n * np.log(n))
 
 
-def _x_mdn(log_g, n, exact):
-    """log Lambda from log G for M-D-n (Newton on the spline; optional exact polish)."""
-    c = (n + 1.0) / n
-    g_lo = log_pulloff_fast(n, _XMIN) + c * _XMIN
-    g_hi = log_pulloff_fast(n, _XMAX) + c * _XMAX
-    bad = (log_g < g_lo - 1e-9) | (log_g > g_hi + 1e-9)
-    if np.any(bad):
-        # rigid/JKR asymptotes give a rough Lambda for the message
-        xr = _x_rigid(log_g[bad], n[bad], "dugdale")
-        raise _domain_error(xr.min(), xr.max())
-    # start from the rigid asymptote (an under-estimate of log Lambda since P~_MDn <= P~_rigid)
-    x = np.clip(_x_rigid(log_g, n, "dugdale"), _XMIN, _XMAX)
-    for _ in range(30):
-        r = log_pulloff_fast(n, x) + c * x - log_g
-        d = log_pulloff_fast(n, x, dx=1) + c
+def _newton_log_lambda(log_g, n, x0, residual_and_slope, iters, tol, pot):
+    """Newton in x = log Lambda on [x_min, x_max], element by element: an element stops when its
+    own step is below ``tol`` (the others go on), so converged elements cost nothing more.
+    ``residual_and_slope(idx, x)`` gives G(x) - log G and dG/dx of the elements ``idx``.  Where the
+    solution lies outside the domain the iteration ends on a bound with a residual of that sign
+    (> 1e-9): the domain error is raised for those, with the rigid Lambda of ``pot`` in the message."""
+    x = np.array(x0, dtype=float)
+    r_last = np.zeros_like(x)
+    act = np.arange(x.size)
+    for _ in range(iters):
+        r, d = residual_and_slope(act, x[act])
         step = r / d
-        x = np.clip(x - step, _XMIN, _XMAX)
-        if np.all(np.abs(step) < 1e-13):
+        x[act] = np.clip(x[act] - step, _XMIN, _XMAX)
+        r_last[act] = r
+        act = act[np.abs(step) >= tol]
+        if act.size == 0:
             break
+    bad = ((x <= _XMIN) & (r_last > 1e-9)) | ((x >= _XMAX) & (r_last < -1e-9))
+    if np.any(bad):
+        xr = _x_rigid(log_g[bad], n[bad], pot)  # the rigid asymptote gives a rough Lambda for the message
+        raise _domain_error(xr.min(), xr.max())
+    return x
+
+
+def _x_mdn(log_g, n, exact):
+    """log Lambda from log G for M-D-n (Newton on the spline, started from the rigid asymptote,
+    an under-estimate of log Lambda since P~_MDn <= P~_rigid; optional exact polish)."""
+    c = (n + 1.0) / n
+
+    def residual_and_slope(i, xi):
+        return (
+            log_pulloff_fast(n[i], xi) + c[i] * xi - log_g[i],
+            log_pulloff_fast(n[i], xi, dx=1) + c[i],
+        )
+
+    x0 = np.clip(_x_rigid(log_g, n, "dugdale"), _XMIN, _XMAX)
+    x = _newton_log_lambda(log_g, n, x0, residual_and_slope, 30, 1e-13, "dugdale")
     if exact and x.size:
         for _ in range(8):
             r = np.log(pulloff_mdn_exact(n, np.exp(x))) + c * x - log_g
@@ -175,20 +193,13 @@ def _x_elastic(log_g, n, pot, exact):
     exact=True polished by Newton steps on direct solves."""
     c = (n + 1.0) / n
 
-    def g_of(x):
-        return log_pulloff_fast(n, x) + log_ratio_to_mdn(pot, n, x) + c * x
+    def residual_and_slope(i, xi):
+        ni, ci = n[i], c[i]
+        g = log_pulloff_fast(ni, xi) + log_ratio_to_mdn(pot, ni, xi) + ci * xi
+        return g - log_g[i], log_pulloff_fast(ni, xi, dx=1) + log_ratio_to_mdn(pot, ni, xi, dx=1) + ci
 
-    bad = (log_g < g_of(np.full_like(n, _XMIN)) - 1e-9) | (log_g > g_of(np.full_like(n, _XMAX)) + 1e-9)
-    if np.any(bad):
-        xr = _x_rigid(log_g[bad], n[bad], pot)
-        raise _domain_error(xr.min(), xr.max())
-    x = np.clip(_x_rigid(log_g, n, pot), _XMIN, _XMAX)
-    for _ in range(40):
-        d = log_pulloff_fast(n, x, dx=1) + log_ratio_to_mdn(pot, n, x, dx=1) + c
-        step = (g_of(x) - log_g) / d
-        x = np.clip(x - step, _XMIN, _XMAX)
-        if np.all(np.abs(step) < 1e-12):
-            break
+    x0 = np.clip(_x_rigid(log_g, n, pot), _XMIN, _XMAX)
+    x = _newton_log_lambda(log_g, n, x0, residual_and_slope, 40, 1e-12, pot)
     if exact and x.size:
         for _ in range(4):
             r = np.log(_elastic_nd(n, np.exp(x), pot, True)) + c * x - log_g
