@@ -1,20 +1,24 @@
 """Path dependence of the TEM stage: the independent grid twice, once with a perturbation that must not matter.
 
-    .venv/bin/python benchmarks/bench_tem_path_dependence.py [N] [--quick] [--jobs 2] [--rel 1e-13]
-        [--seed0 S] [--csv out.csv]  (both rows of every image)
+    .venv/bin/python benchmarks/bench_tem_path_dependence.py [N] [--quick] [--jobs 2]
+        [--perturb table|image] [--rel R] [--seed0 S] [--csv out.csv]  (both rows of every image)
 
 Runs the images of ``bench_tem_independent`` (its ``case`` and ``run_one``: simulate, save as
 an instrument would, ``read_tem_image`` -> ``extract_profile`` -> ``run_fit``, graded against
-the truth) twice on the same simulated image: as is, and with
-``pipeline.tem.projection.core_radius_sq_table`` (the coated body's core table) multiplied by
-``1 + rel`` (default 1e-13: a last-bit difference such as another CPU or BLAS, or a
-re-ordered sum, makes).  The perturbation touches only the coated model, i.e. the coating
-search of every image (``coating: auto``) and the final fit of the images it calls coated.
+the truth) twice on the same simulated image: as is, and perturbed by a last-bit change such
+as another CPU or BLAS, or a re-ordered sum, makes:
+
+- ``table`` (default, R = 1e-13): ``pipeline.tem.projection.core_radius_sq_table`` (the coated
+  body's core table) times (1 + R).  It touches only the coated model: the coating search of
+  every image (``coating: auto``) and the final fit of the images it calls coated.
+- ``image`` (R = 1e-12): the window ``silhouette_fit.fit_silhouette`` is given times (1 + R):
+  every fit of stage 1, the single-layer one too.
+
 A result that is a function of the image alone does not move; the table counts the images
 whose fitted n moved by more than 1e-6, 0.01, 0.1, whose interval changed between used and
 lost, and whose light-layer decision (single / coated / ambiguous) changed, and prints the
-images that moved by more than 0.01.  Also the accuracy summary of the unperturbed run (as
-``bench_tem_independent``) and the median stage-1 time (``t_profile``, s).  Never fails.
+images that moved by more than 0.01.  Also the accuracy summary of both runs (as
+``bench_tem_independent``) and the stage-1 time (``t_profile``, s).  Never fails.
 """
 
 from __future__ import annotations
@@ -42,23 +46,32 @@ def _decision(r):
     return "ambiguous" if r.get("coating_ambiguous") else (r.get("coating_model") or "-")
 
 
-def _perturbed_table(rel):
-    """A ``core_radius_sq_table`` whose output is the original's times (1 + rel)."""
-    from pipeline.tem import projection
+def _perturbation(kind, rel):
+    """(module, attribute name, perturbed replacement) of the perturbation ``kind``."""
+    import pipeline.tem.silhouette_fit as sf
+    import pipeline.tem.silhouette_model as sm
 
-    orig = projection.core_radius_sq_table
+    if kind == "table":
+        orig = sm.core_radius_sq_table
 
-    def table(rho_sq, dz, thickness):
-        return orig(rho_sq, dz, thickness) * (1.0 + rel)
+        def table(rho_sq, dz, thickness):
+            return orig(rho_sq, dz, thickness) * (1.0 + rel)
 
-    return orig, table
+        return sm, "core_radius_sq_table", table
+    orig = sf.fit_silhouette
+
+    def fit(flat, *args, **kw):
+        if kw.get("binning") == 1:  # the binned fit's inner call: its window is scaled already
+            return orig(flat, *args, **kw)
+        return orig(np.asarray(flat, float) * (1.0 + rel), *args, **kw)
+
+    return sf, "fit_silhouette", fit
 
 
 def pair(args):
     """Grid image ``i`` as is and perturbed, on one simulation: (row, perturbed row)."""
-    i, seed0, workdir, rel = args
+    i, seed0, workdir, kind, rel = args
     import pipeline.synth.tem_wave as tw
-    import pipeline.tem.silhouette_model as sm
 
     simulate = tw.simulate
     memo = {}
@@ -69,13 +82,14 @@ def pair(args):
         return memo[p.seed]
 
     tw.simulate = simulate_once
-    orig, perturbed = _perturbed_table(rel)
+    module, name, perturbed = _perturbation(kind, rel)
+    orig = getattr(module, name)
     try:
         a = run_one((i, seed0, workdir, {}, None))
-        sm.core_radius_sq_table = perturbed
+        setattr(module, name, perturbed)
         b = run_one((i, seed0, workdir, {}, None))
     finally:
-        sm.core_radius_sq_table = orig
+        setattr(module, name, orig)
         tw.simulate = simulate
     return a, b
 
@@ -103,14 +117,16 @@ def compare(pairs):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     grid_arguments(ap, jobs=1)
-    ap.add_argument("--rel", type=float, default=1e-13, help="relative perturbation of the core table")
+    ap.add_argument("--perturb", choices=("table", "image"), default="table", help="what is perturbed (module doc)")
+    ap.add_argument("--rel", type=float, default=None, help="relative perturbation (table 1e-13, image 1e-12)")
     a = ap.parse_args(argv)
     import tempfile
 
     n = 12 if a.quick else a.n
+    rel = a.rel if a.rel is not None else {"table": 1e-13, "image": 1e-12}[a.perturb]
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        jobs = [(i, a.seed0, tmp, a.rel) for i in range(n)]
+        jobs = [(i, a.seed0, tmp, a.perturb, rel) for i in range(n)]
         pairs = []
         for p in map_images(pair, jobs, a.jobs):
             pairs.append(p)
@@ -118,7 +134,8 @@ def main(argv=None):
     wall = time.perf_counter() - t0
     counts, big = compare(pairs)
     print(
-        f"\n{n} images of bench_tem_independent, each fitted as is and with the core table x (1 + {a.rel:g}) "
+        f"\n{n} images of bench_tem_independent, each fitted as is and with the "
+        f"{'core table' if a.perturb == 'table' else 'fitted window'} x (1 + {rel:g}) "
         f"(wall {wall:.0f} s on {a.jobs} process(es))\n"
     )
     m = counts["moved"]
