@@ -230,13 +230,39 @@ def print_table(rows):
             print(f"  {v:3d}  {k}")
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def grid_arguments(ap, jobs):
+    """The grid's command-line arguments (N, --quick, --seed0, --jobs, --csv) on ``ap``."""
     ap.add_argument("n", nargs="?", type=int, default=120, help="number of images (default 120)")
     ap.add_argument("--quick", action="store_true", help="12 images (every layer with and without particles)")
     ap.add_argument("--seed0", type=int, default=0, help="seed of image 0")
-    ap.add_argument("--jobs", type=int, default=2, help="worker processes (one thread each)")
-    ap.add_argument("--csv", default=None, help="write one row per image to this CSV")
+    ap.add_argument("--jobs", type=int, default=jobs, help="worker processes (one thread each)")
+    ap.add_argument("--csv", default=None, help="write the per-image rows to this CSV")
+
+
+def map_images(func, jobs, n_jobs):
+    """``func`` over ``jobs`` in order, on ``n_jobs`` forked worker processes (or in this one)."""
+    if n_jobs > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("fork").Pool(n_jobs, maxtasksperchild=10) as pool:
+            yield from pool.imap(func, jobs)
+    else:
+        yield from map(func, jobs)
+
+
+def write_rows(path, rows):
+    """The per-image rows (dicts) as a CSV, every key a column."""
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    print(f"\nper-image rows: {path}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    grid_arguments(ap, jobs=2)
     ap.add_argument("--verbose", action="store_true", help="print one row per image")
     ap.add_argument(
         "--figures",
@@ -260,19 +286,9 @@ def main(argv=None):
         if a.figures:
             os.makedirs(a.figures, exist_ok=True)
         jobs = [(i, a.seed0, tmp, fixed, a.figures) for i in range(n)]
-        if a.jobs > 1:
-            import multiprocessing as mp
-
-            with mp.get_context("fork").Pool(a.jobs, maxtasksperchild=10) as pool:
-                it = pool.imap(run_one, jobs)
-                for r in it:
-                    rows.append(r)
-                    _progress(r, a.verbose)
-        else:
-            for j in jobs:
-                r = run_one(j)
-                rows.append(r)
-                _progress(r, a.verbose)
+        for r in map_images(run_one, jobs, a.jobs):
+            rows.append(r)
+            _progress(r, a.verbose)
     wall = time.perf_counter() - t0
     print(
         f"\n{n} independent-simulator images through the current TEM stage + stage 2 "
@@ -291,12 +307,7 @@ def main(argv=None):
                 f"px {r['pixel_nm']:.2f}, SNR {r['snr']:.0f}, coating model {r['coating_model'] or '-'}"
             )
     if a.csv:
-        keys = list(dict.fromkeys(k for r in rows for k in r))
-        with open(a.csv, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=keys)
-            w.writeheader()
-            w.writerows(rows)
-        print(f"\nper-image rows: {a.csv}")
+        write_rows(a.csv, rows)
 
 
 def _progress(r, verbose):

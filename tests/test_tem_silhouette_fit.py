@@ -324,3 +324,16 @@ def test_given_coating_thicker_than_the_fitted_band_fits_the_outer_layer_alone()
     assert ct["model"] == "single" and "thicker than the fitted band" in ct["note"]
     assert not e["edge_flags"]
     assert e["rms_normal"] < 0.06e-9 and abs(e["dn"]) < 0.05
+
+
+def test_pixel_map_refresh_is_not_the_step_limit():
+    """The pixel map is refreshed once the curve moved > MAP_REFRESH_PX; an LM step at its limit
+    moves it by exactly the limit (up to rounding).  With the two equal, rounding decided whether
+    the map was refreshed and the fit's path followed (bench_tem_path_dependence: 81 of 120 images
+    moved with the window 1e-12 off, 31 by > 0.1 in n).  A full step must refresh it."""
+    from pipeline.tem.silhouette_fit import _bounds
+    from pipeline.tem.silhouette_model import MAP_REFRESH_PX
+
+    for coated in (False, True):
+        _, _, max_step = _bounds(10, 0.02, 12.0, coated)
+        assert MAP_REFRESH_PX < 0.9 * max_step[:10].min()

@@ -18,6 +18,14 @@ from pipeline.tem.projection import chord, core_radius_sq_table
 # chi^2 -592 with the layer; the edge 0.48 nm out) and biased n there by +0.08.
 _SS_FINE, _SS = 8, 4
 _FINE_PX, _BAND_PX = 1.0, 2.0
+# The pixel map is refreshed once the curve (or the layer thickness) moved more than this
+# (px).  It must not equal the LM's step limit on the offsets (0.6 px, ``silhouette_fit._bounds``):
+# a step at the limit moves the curve by exactly that, up to rounding, and with the two equal
+# the last bit decided whether the map was refreshed, and the fit's path followed.  Below the
+# limit a full step always refreshes the map.  benchmarks/bench_tem_path_dependence.py (120
+# images; n moved by > 1e-6 / > 0.1): fitted window x (1 + 1e-12) 81 / 31 with the threshold
+# at 0.6, 12 / 2 at 0.5; core table x (1 + 1e-13) 13 / 5, then 1 (by 6e-5) / 0.
+MAP_REFRESH_PX = 0.5
 
 
 def _sub_offsets(m):
@@ -314,10 +322,12 @@ class _Problem:
         val = _bspline(u[:, None] - j)
         return np.clip(j - self.kc[0], 0, self.K - 1), val
 
-    def update_pixel_map(self, c, coat):
+    def update_pixel_map(self, c, coat, cold=False):
         """Nearest curve point of every needed pixel: B-spline rows of the residual pixels
         (local-translation Jacobian) and the distance map that selects the pixels to
-        supersample."""
+        supersample.  The search starts from the last map's nearest points (a local search:
+        its result can depend on the earlier maps); ``cold``: a k-d tree over the whole
+        curve, so that the map is a function of (c, coat) alone."""
         x, z = self.curve(c)
         # only residual pixels can be near a silhouette (outer edge: inside the band by
         # construction; core: coat <= 12 px < inner band width)
@@ -325,7 +335,7 @@ class _Problem:
         # <= 0.13 px, arc position <= 0.25 px)
         dec = 2
         xs, zs = x[::dec], z[::dec]
-        j_old = self._j_res if getattr(self, "_j_ref", None) is self.S else None
+        j_old = self._j_res if not cold and getattr(self, "_j_ref", None) is self.S else None
         if j_old is None:
             d, j = cKDTree(np.column_stack([xs, zs])).query(np.column_stack([self.px_res, self.pz_res]))
         else:
@@ -355,7 +365,11 @@ class _Problem:
 
     def map_stale(self, c, coat):
         # B-splines are >= 0 and sum to 1: no curve point moved more than max |dc|
-        return self.map_c is None or np.max(np.abs(c - self.map_c)) > 0.6 or abs(coat - self.map_coat) > 0.6
+        return (
+            self.map_c is None
+            or np.max(np.abs(c - self.map_c)) > MAP_REFRESH_PX
+            or abs(coat - self.map_coat) > MAP_REFRESH_PX
+        )
 
     # ------------------------------------------------------------------ forward model
     def chords(self, c, coat, sub=None, outer=None):

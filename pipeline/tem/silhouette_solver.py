@@ -175,7 +175,9 @@ class _Fitter:
         graph, optimal), and each pixel's change goes to the knot whose band holds its height."""
         p, K = self.p, self.K
         c, sigma, k_o, k_c, coat = self.unpack(st.v)
-        p.update_pixel_map(c, coat)  # one fixed pixel map for the base and the perturbations
+        # one fixed pixel map for the base and the perturbations, built from (c, coat) alone: the
+        # maps the LM and the coated trial fits left must not decide which pixels are supersampled
+        p.update_pixel_map(c, coat, cold=True)
         st = self.evaluate(st.v)
         _, Jo, names = self.jacobian(st, with_shape=False, central=True)
         M0 = st.B @ st.lin
