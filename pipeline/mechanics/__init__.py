@@ -78,7 +78,9 @@ def __getattr__(name):
         return value
     try:
         return importlib.import_module(f".{name}", __name__)
-    except ModuleNotFoundError:
+    except ModuleNotFoundError as exc:
+        if exc.name != f"{__name__}.{name}":  # a submodule that exists but lacks a dependency: say so
+            raise
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
 
 
