@@ -99,20 +99,27 @@ def test_faint_layer_is_written_with_units(cases, tmp_path):
 
 def test_a_layer_seen_reaches_the_fit_and_the_inversion_notes(cases, tmp_path):
     """What stage 1 says about the edge travels on: the fit file's notes carry it, and ``load_fit``
-    (the inversion's reader) gives it to the interval's notes; an uncoated tip carries none."""
+    (the inversion's reader) gives it to the interval's notes; a layer seen on each flank makes the
+    fit ``edge_is_core`` (unusable: the profile is the core's); an uncoated tip carries none."""
     from pipeline.fits.stage import run_fit
     from pipeline.inversion.io import load_fit
+    from pipeline.inversion.shape import UNUSABLE_FIT_FLAGS
     from pipeline.tem.io import write_profile_h5
 
     for layer in ("DLC", "none"):
         c = cases[(SEEDS[0], layer)]
         write_profile_h5(tmp_path / f"{layer}.h5", c["image"], c["profile"])
         run_fit(tmp_path / f"{layer}.h5", tmp_path / f"fit_{layer}.h5")
-        notes = load_fit(tmp_path / f"fit_{layer}.h5")["edge_notes"]
+        fit = load_fit(tmp_path / f"fit_{layer}.h5")
+        notes = fit["edge_notes"]
         if layer == "DLC":
             assert any(x.startswith("a faint outer layer of ~") for x in notes), notes
+            # the profile is the core's: the shape is not used (unusable flag, said in words)
+            assert "edge_is_core" in fit["flags"] and "edge_is_core" in fit["paraboloid"]["flags"]
+            assert set(fit["flags"]) & UNUSABLE_FIT_FLAGS
         else:
             assert not any("faint outer layer" in x for x in notes), notes
+            assert "edge_is_core" not in fit["flags"]
 
 
 def test_a_model_body_outside_the_fitted_pixels_is_said_in_words():

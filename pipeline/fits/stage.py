@@ -52,4 +52,21 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
     # what stage 1 says about the edge (a faint layer beyond it, a coating it could not identify)
     # travels with the fit, into the inversion's notes of the interval
     fits["combined"].notes = [f"{EDGE_NOTE_PREFIX}{x}" for x in prof.get("edge_flags", [])] + fits["combined"].notes
+    if prof.get("edge_is_core"):
+        _flag_edge_is_core([fits["combined"], para])
     write_fit_h5(out_h5, fits, para, source=profile_h5, tip=tip, interval=interval)
+
+
+EDGE_IS_CORE_NOTE = (
+    "edge_is_core: stage 1 saw a faint outer layer beyond the fitted edge on each flank alone, so the "
+    "profile is the core's, not the outer surface that touches the sample; the shape is not used "
+    "(the layer's own edge is not fitted: see the stage-1 note for its thickness and contrast)"
+)
+
+
+def _flag_edge_is_core(fits):
+    """Flag ``edge_is_core`` (unusable) on every fit of a profile that is the core's (``read_profile``)."""
+    for fit in fits:
+        if fit is not None and "edge_is_core" not in fit.flags:
+            fit.flags = [*fit.flags, "edge_is_core"]
+            fit.notes = [*fit.notes, EDGE_IS_CORE_NOTE]

@@ -38,7 +38,15 @@ REFERENCE_N_SIGMA = 2.0
 SHAPE_POORLY_DEFINED_SIGMA_N = 0.2
 # Stage-2 fit flags that make an interval unusable (its fit is not a trustworthy tip shape).
 UNUSABLE_FIT_FLAGS = frozenset(
-    {"n_below_1.5", "not_converged", "n_at_bound", "residual_above_pixel", "few_points", "edge_turns_back"}
+    {
+        "n_below_1.5",
+        "not_converged",
+        "n_at_bound",
+        "residual_above_pixel",
+        "few_points",
+        "edge_turns_back",
+        "edge_is_core",
+    }
 )
 USABLE_N_FLAGS = ("ok", "n_clipped_to_2")
 

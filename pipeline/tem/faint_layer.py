@@ -348,8 +348,9 @@ def _statement(rows, k_core, px, d0, coat_model, max_d):
     if seen.any():
         j = int(np.argmax(np.where(seen, zc, -np.inf)))
         c = float(a[j] / k_core)
-        out.update(found_thickness=float(t[j] * px), found_contrast=c, found_z=float(zc[j]))
         sure = min(zl[j], zr[j]) >= Z_DETECT
+        # seen on each flank alone: the fitted profile is the core's (stage 2 flags it edge_is_core)
+        out.update(found_thickness=float(t[j] * px), found_contrast=c, found_z=float(zc[j]), edge_is_core=bool(sure))
         out["note"] = (
             f"a faint outer layer of ~{t_nm[j]:.0f} nm (contrast {100 * c:.0f} % of the core's, {zc[j]:.1f} SD; "
             f"left {zl[j]:.1f}, right {zr[j]:.1f}) is seen {where}: the profile "

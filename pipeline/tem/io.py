@@ -166,6 +166,7 @@ def _write_faint_layer(g, fl):
     sg = h5io.create_group(g, "faint_layer", description="faint outer layer beyond the fitted edge; detection limit")
     sg.attrs["tested"] = bool(fl.get("tested", False))
     sg.attrs["found"] = bool(fl.get("found", False))
+    sg.attrs["edge_is_core"] = bool(fl.get("edge_is_core", False))
     sg.attrs["note"] = fl.get("note", "")
     if not fl.get("tested"):
         return
@@ -189,9 +190,10 @@ def _write_faint_layer(g, fl):
 
 def read_profile(profile_h5):
     """The profile file: ({"left"|"right"|"combined": (r, z, edge), "flank", "chi2_red", "n_pixels",
-    "edge_flags"}, pixel size (m)); edge is None or dict(edge_basis, edge_cov, normal_rz); edge_flags
-    the edge model's warnings in words (a coating not identifiable, a faint layer beyond the edge, a
-    singular covariance).  h5py's errors
+    "edge_flags", "edge_is_core"}, pixel size (m)); edge is None or dict(edge_basis, edge_cov, normal_rz);
+    edge_flags the edge model's warnings in words (a coating not identifiable, a faint layer beyond the
+    edge, a singular covariance); edge_is_core True where a faint outer layer was seen beyond the
+    fitted edge on each flank alone (the profile is the core's).  h5py's errors
     (FileNotFoundError, OSError, KeyError) pass through for the caller to word."""
     import h5py
 
@@ -211,5 +213,7 @@ def read_profile(profile_h5):
         out["n_pixels"] = float(em["n_pixels"][()]) if em is not None and "n_pixels" in em else None
         flags = np.atleast_1d(em["flags"][()]) if em is not None and "flags" in em else []
         out["edge_flags"] = [x.decode() if isinstance(x, bytes) else str(x) for x in flags if len(x)]
+        fl = em.get("faint_layer") if em is not None else None
+        out["edge_is_core"] = bool(fl is not None and fl.attrs.get("edge_is_core", False))
         px = float(f["image"]["pixel_size"][()])
         return out, px
