@@ -20,6 +20,10 @@ COAT_PER_BLUR = 2.6
 # continuous in the thickness, a 1.1 px layer of contrast 0.45 under a 1 px blur absorbed the
 # single-layer model's own error on a noise-free uncoated flat face (chi^2 -19, edge 0.1 nm out)
 MIN_COAT_PX = 1.5
+# layer/core attenuation ratios that count as a layer: a DLC coating has 5-30 % of the core's
+# contrast (issue 16; grid image 38, DLC at 0.068, converged at 0.05-0.08 and was called ambiguous
+# under the former 0.1); near 1 the two layers are one, the single layer fitting noise
+PHYSICAL_RATIO = (0.04, 0.8)
 COAT_START_ITERS = 3  # full LM iterations from each of the two best starts
 COAT_EXTRA_STARTS = 3  # further starts tried when the decision is borderline
 
@@ -61,7 +65,7 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
     a longer chord than the flanks).  So: every thickness of ``COAT_GRID_PX`` that the
     single-layer blur leaves room for (t <= COAT_PER_BLUR sigma_single) is evaluated once
     from ``_coated_start``, the two best get ``COAT_START_ITERS`` full LM iterations and the
-    better one is converged.  Only PHYSICAL fits (0.1 < k_o/k_c < 0.8, thickness >= MIN_COAT_PX)
+    better one is converged.  Only PHYSICAL fits (PHYSICAL_RATIO: 0.04 < k_o/k_c < 0.8, thickness >= MIN_COAT_PX)
     count: a coated fit with no contrast between the layers is the single layer fitting
     noise.  When the decision is borderline, ``COAT_EXTRA_STARTS`` more starts are tried.
     The decision compares LM solutions (``_Fitter.polish`` notes that LM stops short of the
@@ -116,9 +120,10 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
 
 
 def _physical(f2, st):
-    """A layer that counts: 0.1 < k_o/k_c < 0.8 and thickness >= MIN_COAT_PX."""
+    """A layer that counts: k_o/k_c within PHYSICAL_RATIO and thickness >= MIN_COAT_PX."""
     _, _, ko, kc, coat = f2.unpack(st.v)
-    return bool(0.1 * kc < ko < 0.8 * kc and coat >= MIN_COAT_PX)
+    lo, hi = PHYSICAL_RATIO
+    return bool(lo * kc < ko < hi * kc and coat >= MIN_COAT_PX)
 
 
 def _best_physical(f2, runs):

@@ -34,7 +34,7 @@ Coating: "auto" fits the single-layer model, then searches the coated one
 (``_coating_search``: starts on a grid of thicknesses that the single-layer blur
 leaves room for, the two best taken a few LM steps, the better one converged) and
 keeps it only if it lowers chi^2 by more than ``COAT_DCHI2`` (likelihood ratio, 2
-extra parameters) with physical values (0.1 < k_o/k_c < 0.8, thickness >= MIN_COAT_PX).
+extra parameters) with physical values (0.04 < k_o/k_c < 0.8, thickness >= MIN_COAT_PX).
 A layered fit within +-``COAT_DCHI2`` of the single layer is neither found nor
 excluded (thin light oxide at coarse pixels, heavy blur or low SNR: the image cannot
 say whether it is there): the single-layer edge is kept, flagged "coating
