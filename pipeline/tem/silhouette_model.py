@@ -244,6 +244,7 @@ class _Problem:
         c_lo = int(max(0, np.floor(ci[:, 1].min()) - mrg))
         c_hi = int(min(W, np.ceil(ci[:, 1].max()) + mrg + 1))
         self.shape = (r_hi - r_lo, c_hi - c_lo)
+        self.origin = (r_lo, c_lo)  # image row, col of the rectangle's first pixel
         RR, CC = np.mgrid[r_lo:r_hi, c_lo:c_hi].astype(float)
         P = np.column_stack([RR.ravel(), CC.ravel()])
         px, pz = frame.to_tip(P)
