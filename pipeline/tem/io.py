@@ -109,10 +109,22 @@ def _write_edge_model(f, image, profile):
         _write_coating_test(g, ct, image.pixel_size)
     if em.get("faint_layer"):
         _write_faint_layer(g, em["faint_layer"])
+    if em.get("global_fringe"):
+        _write_fringe(g, em["global_fringe"], image.pixel_size)
     if "global_chi2_red" in em:
         w(g, "chi2_reduced", em["global_chi2_red"], "1", "reduced chi^2 of the silhouette fit")
         w(g, "n_pixels", em["global_n_pixels"], "1", "pixels in the silhouette fit")
         w(g, "binning", em.get("global_binning", 1), "1", "block size of the silhouette fit (b x b pixels)")
+
+
+def _write_fringe(g, fr, px):
+    """The defocus-fringe correction of the silhouette fit (``pipeline.tem.fringe_correction``)."""
+    w = h5io.write_dataset
+    g.attrs["fringe_applied"] = bool(fr["applied"])
+    w(g, "fringe_offset", fr["offset_px"] * px, "m", "uniform outward edge offset of the coherent rendering")
+    w(g, "fringe_offset_sd", fr["offset_sd_px"] * px, "m", "its standard error (added to the edge covariance)")
+    w(g, "fringe_lambda_defocus", fr["A_px2"] * px**2, "m^2", "wavelength x defocus fitted (> 0 underfocus)")
+    w(g, "fringe_dchi2", fr["dchi2"], "1", "chi^2(Beer-Lambert) - chi^2(coherent rendering)")
 
 
 def _write_coating_test(g, ct, px):

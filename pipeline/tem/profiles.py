@@ -164,6 +164,7 @@ def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine):
             global_stderr=gf.stderr,
             global_binning=gf.binning,
             coating_test=gf.coating_test,
+            global_fringe=gf.fringe,
         )
         uncertainty = (gf.basis, gf.cov_c, gf.normals)
     else:

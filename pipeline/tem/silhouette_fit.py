@@ -44,6 +44,12 @@ thickness has a relative standard error > 30 % is flagged "coating not
 identifiable".  A given thickness (``coat_hint``) starts the coated fit there and
 keeps it.
 
+Defocus fringes (``fringe_correction``): where the fit leaves a reduced chi^2 above
+``fringe_correction.MIN_CHI2_RED``, a coherent (Fresnel) rendering of the fitted body fits one
+uniform offset of the edge with the defocus, the phase and the blur; the offset is applied (flag
+"defocus fringes: edge moved ...", its standard error added to the edge covariance as a common
+offset) if it lowers chi^2 enough and is no larger than a fringe can shift the edge.
+
 The result carries, for every output edge point, its B-spline row and the
 covariance of the c_k (marginal over all other parameters, px^2; from finite-
 difference spline columns at the solution, ``_Fitter.polish``): the fit stage
@@ -63,6 +69,8 @@ import numpy as np
 
 from pipeline.tem.coating_search import COAT_DCHI2, _coating_search
 from pipeline.tem.edges import TipFrame
+from pipeline.tem.fringe_correction import MIN_CHI2_RED as FRINGE_MIN_CHI2_RED
+from pipeline.tem.fringe_correction import fringe_offset
 from pipeline.tem.silhouette_model import (
     KNOT_NM,
     _axis_attenuation,
@@ -97,6 +105,7 @@ class GlobalFit:
     flags: list = field(default_factory=list)
     coating_test: dict = field(default_factory=dict)
     binning: int = 1
+    fringe: dict = field(default_factory=dict)  # defocus-fringe correction (``fringe_correction``)
 
 
 def fit_silhouette(
@@ -144,8 +153,11 @@ def fit_silhouette(
             fitter, st = f2, st2
     lim = _bounds(prob.K, k0, max_coat, fitter.coated)
     st, JTJ, names = fitter.polish(st, *lim)
+    fringe = {}
+    if float(st.res @ st.res) / max(1, prob.idx.size) > FRINGE_MIN_CHI2_RED:
+        fringe = fringe_offset(prob, fitter, st, pixel_size)
     prob.map_c = None
-    return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size)
+    return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
 
 
 def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b):
@@ -173,6 +185,13 @@ def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm
     for key in ("thickness_px", "outer_shift_px", "ambiguous_shift_px", "ambiguous_thickness_px"):
         if key in ct:
             ct[key] *= b
+    fr = gf.fringe
+    for key in ("offset_px", "offset_sd_px", "sigma_px"):
+        if key in fr:
+            fr[key] *= b
+    if "A_px2" in fr:
+        fr["A_px2"] *= b**2
+        fr["eta"] /= b
     if "candidates_px" in ct:
         ct["candidates_px"] = [t * b for t in ct["candidates_px"]]
     return gf
@@ -222,14 +241,22 @@ def _single_layer_fit(prob, k0, max_coat, max_iter):
     return f1, st1, n_it
 
 
-def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None):
+def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None, fringe=None):
     c, sigma, k_o, k_c, coat = fitter.unpack(st.v)
     K = prob.K
     chi2, stderr, cov_c, flags = _covariances(prob, fitter, st, JTJ, names, coat_test, pixel_size)
-    pts, nrm, basis = _outer_silhouette(prob, c, hpx)
+    fringe = fringe or {}
+    if fringe.get("applied"):
+        # the uniform offset of the coherent rendering moves every edge point; its standard error
+        # is a common offset of the whole edge
+        cov_c = cov_c + fringe["offset_sd_px"] ** 2 * np.ones((K, K))
+        flags.append(_fringe_words(fringe, pixel_size))
     hit = np.nonzero(np.abs(c) >= 5.99)[0]
     if hit.size:
         flags.append(f"edge offset hit its bound (+-6 px) at {hit.size} of {K} knots")
+    if fringe.get("applied"):
+        c = c + fringe["offset_px"]
+    pts, nrm, basis = _outer_silhouette(prob, c, hpx)
     rms = float(np.sqrt(np.mean((st.res / prob.w) ** 2)))
     return GlobalFit(
         pts,
@@ -248,6 +275,17 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None)
         stderr,
         flags,
         coat_test,
+        fringe=fringe,
+    )
+
+
+def _fringe_words(fr, pixel_size):
+    """The flag of an applied defocus-fringe correction."""
+    nm = 1e9 * (pixel_size or float("nan"))
+    return (
+        f"defocus fringes: edge moved {fr['offset_px'] * nm:+.2f} +- {fr['offset_sd_px'] * nm:.2f} nm by a coherent "
+        f"rendering of the fitted body (lambda x defocus {fr['A_px2'] * nm**2:+.1f} nm^2, i.e. "
+        f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f})"
     )
 
 

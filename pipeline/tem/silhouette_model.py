@@ -243,7 +243,7 @@ class _Problem:
         r_hi = int(min(H, np.ceil(ci[:, 0].max()) + mrg + 1))
         c_lo = int(max(0, np.floor(ci[:, 1].min()) - mrg))
         c_hi = int(min(W, np.ceil(ci[:, 1].max()) + mrg + 1))
-        self.shape = (r_hi - r_lo, c_hi - c_lo)
+        self.shape, self.origin = (r_hi - r_lo, c_hi - c_lo), (r_lo, c_lo)  # origin: its first pixel (row, col)
         RR, CC = np.mgrid[r_lo:r_hi, c_lo:c_hi].astype(float)
         P = np.column_stack([RR.ravel(), CC.ravel()])
         px, pz = frame.to_tip(P)
