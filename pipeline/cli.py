@@ -50,6 +50,7 @@ def cmd_profiles(a):
         profile_height=tip["tem"]["profile_height"],
         coating=tip["tem"]["coating"],
         refine=tip["tem"]["refine"],
+        fringe_correction=tip["tem"]["fringe_correction"],
         tip=tip["name"],
         interval=iv["name"],
     )

@@ -5,11 +5,13 @@ and the same tip in focus, where nothing may move."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 
-def _profile(defocus):
+def _profile(defocus, fringe_correction=True):
     from pipeline.synth.tem_wave import draw_params, simulate
     from pipeline.synth.tem_wave_truth import edge_errors
     from pipeline.tem.profiles import extract_profile
@@ -28,7 +30,7 @@ def _profile(defocus):
         R=12e-9,
     )
     img, truth = simulate(p)
-    prof = extract_profile(TemImage(img.astype(float), p.pixel_size, "synthetic"))
+    prof = extract_profile(TemImage(img.astype(float), p.pixel_size, "synthetic"), fringe_correction=fringe_correction)
     sel = (prof.z >= 0.0) & (prof.z <= 10e-9)
     err = edge_errors(prof.edge_px, truth, sel)
     return prof, err, truth, p
@@ -67,3 +69,31 @@ def test_in_focus_edge_is_not_moved():
     fr = prof.edge_model.get("global_fringe") or {}
     moved = fr["offset_px"] * p.pixel_size if fr.get("applied") else 0.0
     assert abs(moved) < 0.03e-9, fr
+
+
+def test_switched_off_keeps_the_beer_lambert_edge(defocused):
+    """``tem.fringe_correction: false``: no correction, the Beer-Lambert edge (1.5 nm out here),
+    and the switch is the only difference: the corrected edge is the same curve moved by the offset."""
+    prof, err, _, p = _profile(-1.5e-6, fringe_correction=False)
+    assert not prof.edge_model.get("global_fringe")
+    assert not any(f.startswith("defocus fringes") for f in prof.edge_model["global_flags"])
+    assert err["bias"] > 1.0e-9, err["bias"]
+    on = defocused[0]
+    moved = on.edge_model["global_fringe"]["offset_px"] * p.pixel_size
+    assert abs((defocused[1]["bias"] - err["bias"]) - moved) < 0.1e-9
+
+
+def test_switch_is_in_the_tip_schema(tmp_path, monkeypatch):
+    """The tip YAML's ``tem.fringe_correction`` defaults to true and must be a boolean."""
+    from pipeline.config import ConfigError, load_tip_config
+
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)  # the YAML's data_dir is relative to where snakemake runs
+    src = (root / "config" / "tips" / "tipB_Si.yaml").read_text()
+    ok = tmp_path / "t.yaml"
+    ok.write_text(src)
+    assert load_tip_config(ok)["tem"]["fringe_correction"] is True
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(src.replace("tem:", "tem:\n  fringe_correction: maybe", 1))
+    with pytest.raises(ConfigError, match="fringe_correction"):
+        load_tip_config(bad)

@@ -85,7 +85,7 @@ def tip_yaml(wildcards):
 # `cantilever:` reruns forces -> inversion -> range, not profiles or fits, and other tips not at
 # all; editing the h grid, the laws, the solver mode or the Monte Carlo reruns every inversion).
 STAGE_KEYS = {
-    "profiles": ("tem", ("pixel_size", "orientation", "profile_height", "coating", "refine")),
+    "profiles": ("tem", ("pixel_size", "orientation", "profile_height", "coating", "refine", "fringe_correction")),
     "fits": ("tem", ("fit_height", "S")),
     "forces": (None, ("cantilever", "force_curves")),
     "inversion": (None, ("materials", "reference_intervals")),

@@ -131,7 +131,7 @@ def _window_and_contour(img, coarse, hpx, path):
     return win, origin, flat, noise, cont, frame
 
 
-def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine):
+def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction=True):
     """(edge points, symmetry frame, edge model, extra edge-model entries, (basis, cov_c, normals) or
     None) of ``extract_profile``: the global silhouette fit, or the per-normal fits where it is not
     asked for or fails."""
@@ -141,7 +141,9 @@ def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine):
 
         sym = _symmetry_frame(cont, frame, hpx)
         try:
-            gf = fit_silhouette(flat, cont, sym, hpx, noise, pixel_size=px, coat_hint=coat_hint)
+            gf = fit_silhouette(
+                flat, cont, sym, hpx, noise, pixel_size=px, coat_hint=coat_hint, fringe_correction=fringe_correction
+            )
         except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # fall back to per-normal fits
             extra = dict(refine="normals", global_flags=[f"global fit failed: {exc}"])
     if gf is not None:
@@ -223,13 +225,14 @@ def _in_image(pts, frame, origin, flipped, n_rows):
 
 
 def extract_profile(
-    image: TemImage, orientation="auto", profile_height=20e-9, coating="auto", refine="global"
+    image: TemImage, orientation="auto", profile_height=20e-9, coating="auto", refine="global", fringe_correction=True
 ) -> TipProfile:
     """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
 
     ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
     "global" (then one global fit of all edge pixels, ``silhouette_fit.fit_silhouette``, on
-    b x b blocks of pixels finer than 0.2 nm, ``silhouette_fit.bin_factor``).
+    b x b blocks of pixels finer than 0.2 nm, ``silhouette_fit.bin_factor``); ``fringe_correction``:
+    the global fit's defocus-fringe correction (``pipeline.tem.fringe_correction``) on or off.
     """
     if refine not in ("normals", "global"):
         raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
@@ -244,7 +247,7 @@ def extract_profile(
     img = image.data[::-1] if flipped else image.data
     win, origin, flat, noise, cont, frame = _window_and_contour(img, coarse, hpx, path)
     pts, frame, edge_model, extra, uncertainty = _refined_edge(
-        win, flat, noise, cont, frame, hpx, px, coat_hint, refine
+        win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction
     )
     if extra.get("refine") == "global":
         extra["faint_layer"] = _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra)

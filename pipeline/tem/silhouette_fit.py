@@ -109,17 +109,29 @@ class GlobalFit:
 
 
 def fit_silhouette(
-    flat, contour, frame: TipFrame, hpx, noise, pixel_size=None, coat_hint=None, knot_nm=None, max_iter=25, binning=None
+    flat,
+    contour,
+    frame: TipFrame,
+    hpx,
+    noise,
+    pixel_size=None,
+    coat_hint=None,
+    knot_nm=None,
+    max_iter=25,
+    binning=None,
+    fringe_correction=True,
 ) -> GlobalFit:
     """Fit the silhouette model (module doc) to ``flat`` (window with the background
     flattened to 1, tip pointing down), starting from ``contour`` (iso-line outside the
     surface, window px) in ``frame``; ``hpx`` profile height (px), ``noise`` background
     noise (relative); ``coat_hint`` None (auto), 0 (none) or a thickness (px).
     ``binning``: block size (default ``bin_factor(pixel_size)``); results are in the
-    pixels of ``flat``."""
+    pixels of ``flat``; ``fringe_correction``: the defocus-fringe correction (module doc) on/off."""
     b = int(binning or bin_factor(pixel_size))
     if b > 1:
-        return _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b)
+        return _fit_binned(
+            flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b, fringe_correction
+        )
     flat = np.asarray(flat, float)
     knot_nm = knot_nm if knot_nm is not None else KNOT_NM
     knot = float(np.clip(knot_nm * 1e-9 / pixel_size if pixel_size else 6.0, 4.0, 16.0))
@@ -154,13 +166,13 @@ def fit_silhouette(
     lim = _bounds(prob.K, k0, max_coat, fitter.coated)
     st, JTJ, names = fitter.polish(st, *lim)
     fringe = {}
-    if float(st.res @ st.res) / max(1, prob.idx.size) > FRINGE_MIN_CHI2_RED:
+    if fringe_correction and float(st.res @ st.res) / max(1, prob.idx.size) > FRINGE_MIN_CHI2_RED:
         fringe = fringe_offset(prob, fitter, st, pixel_size)
     prob.map_c = None
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
 
 
-def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b):
+def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b, fringe_correction=True):
     """``fit_silhouette`` on b x b blocks, its result in the pixels of ``flat``."""
     off = 0.5 * (b - 1)
     gf = fit_silhouette(
@@ -174,6 +186,7 @@ def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm
         knot_nm,
         max_iter,
         binning=1,
+        fringe_correction=fringe_correction,
     )
     gf.points = gf.points * b + off
     gf.frame = TipFrame(gf.frame.apex * b + off, gf.frame.angle)

@@ -22,6 +22,7 @@ def run_profiles(
     profile_height=20e-9,
     coating="auto",
     refine="global",
+    fringe_correction=True,
 ) -> None:
     """Read ``image_path``, extract the apex profile, write ``out_h5`` and ``out_png`` atomically.
 
@@ -29,12 +30,18 @@ def run_profiles(
     profile_height: m of profile kept above the apex; coating: "auto", "none" or a
     thickness in m (lighter outer layer; the OUTER surface is reported); refine:
     "global" (one fit of all edge pixels, pipeline.tem.silhouette_fit) or "normals"
-    (per-normal fits only, pipeline.tem.edges).
+    (per-normal fits only, pipeline.tem.edges); fringe_correction: the defocus-fringe correction
+    of the global fit's edge (pipeline.tem.fringe_correction).
     Raises ValueError subclasses (pipeline.tem.errors) naming the file.
     """
     image = read_tem_image(image_path, pixel_size)
     profile = extract_profile(
-        image, orientation=orientation, profile_height=profile_height, coating=coating, refine=refine
+        image,
+        orientation=orientation,
+        profile_height=profile_height,
+        coating=coating,
+        refine=refine,
+        fringe_correction=fringe_correction,
     )
     write_profile_h5(out_h5, image, profile, tip=tip, interval=interval)
     fl = profile.edge_model.get("faint_layer") or {}
