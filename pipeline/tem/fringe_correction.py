@@ -73,6 +73,8 @@ class _Coherent:
         self._grids = {}
         self.eta0 = PHASE_PER_M * float(pixel_size or 0.25e-9)
         self._fields = {}
+        self._waves = {}  # (delta, eta) -> exit wave (complex64) and |psi|^2 at the needed pixels
+        self._fringes = {}  # (delta, A, eta) -> dI at the needed pixels (the blur's column reuses it)
 
     def fields(self, delta):
         """(t_outer, t_core at every rectangle pixel centre, sub-sampled T at the needed pixels)
@@ -83,9 +85,7 @@ class _Coherent:
             x, z = self.p.curve(c)
             t_o, t_c = _Body(x, z, self.coat).chords(self.px, self.pz)
             T = self.p.transmission(self.p.chords(c, self.coat), self.k_o, self.k_c)
-            if len(self._fields) >= 3:
-                self._fields.pop(next(iter(self._fields)))
-            self._fields[key] = (t_o, t_c, T)
+            _keep(self._fields, key, (t_o, t_c, T))
         return self._fields[key]
 
     def grid(self, A):
@@ -98,19 +98,30 @@ class _Coherent:
             self._grids[pad] = (pad, full, sfft.fftfreq(full[0]) ** 2, sfft.fftfreq(full[1]) ** 2)
         return self._grids[pad]
 
+    def wave(self, delta, eta):
+        """(exit wave psi on the rectangle, complex64; |psi|^2 at the needed pixels) of the curve
+        moved by ``delta`` with phase per length ``eta`` (the last three kept)."""
+        key = (float(delta), float(eta))
+        if key not in self._waves:
+            t_o, t_c, _ = self.fields(delta)
+            psi = np.exp(-0.5 * (self.k_o * t_o + (self.k_c - self.k_o) * t_c) + 1j * eta * t_o)
+            _keep(self._waves, key, (psi.astype(np.complex64).reshape(self.p.shape), np.abs(psi[self.p.need]) ** 2))
+        return self._waves[key]
+
     def fringe(self, delta, A, eta):
-        """dI (module doc) at the needed pixels."""
-        t_o, t_c, _ = self.fields(delta)
-        H, W = self.p.shape
-        pad, full, fy2, fx2 = self.grid(A)
-        psi = np.exp(-0.5 * (self.k_o * t_o + (self.k_c - self.k_o) * t_c) + 1j * eta * t_o).reshape(H, W)
-        widths = ((pad, full[0] - H - pad), (pad, full[1] - W - pad))
-        spec = sfft.fft2(np.pad(psi, widths, mode="edge").astype(np.complex64), workers=1, overwrite_x=True)
-        spec *= np.exp(1j * np.pi * A * fy2).astype(np.complex64)[:, None]
-        spec *= np.exp(1j * np.pi * A * fx2).astype(np.complex64)[None, :]
-        out = sfft.ifft2(spec, workers=1, overwrite_x=True)[pad : pad + H, pad : pad + W]
-        dI = out.real.astype(float) ** 2 + out.imag.astype(float) ** 2 - np.abs(psi) ** 2
-        return dI.ravel()[self.p.need]
+        """dI (module doc) at the needed pixels (the last five kept: a Jacobian needs four)."""
+        key = (float(delta), float(A), float(eta))
+        if key not in self._fringes:
+            psi, psi2 = self.wave(delta, eta)
+            H, W = self.p.shape
+            pad, full, fy2, fx2 = self.grid(A)
+            widths = ((pad, full[0] - H - pad), (pad, full[1] - W - pad))
+            spec = sfft.fft2(np.pad(psi, widths, mode="edge"), workers=1, overwrite_x=True)
+            spec *= np.exp(1j * np.pi * A * fy2).astype(np.complex64)[:, None]
+            spec *= np.exp(1j * np.pi * A * fx2).astype(np.complex64)[None, :]
+            out = sfft.ifft2(spec, workers=1, overwrite_x=True)[pad : pad + H, pad : pad + W].ravel()[self.p.need]
+            _keep(self._fringes, key, out.real.astype(float) ** 2 + out.imag.astype(float) ** 2 - psi2, size=5)
+        return self._fringes[key]
 
     def residual(self, q):
         """Weighted residuals at q = (delta px, A px^2, ln(eta / eta0), ln(s / sigma))."""
@@ -144,6 +155,13 @@ class _Coherent:
             if gain < 1e-4 * cost:
                 break
         return q, cost, JTJ
+
+
+def _keep(cache, key, value, size=3):
+    """Put ``value`` in the small FIFO ``cache`` (at most ``size`` entries)."""
+    if len(cache) >= size:
+        cache.pop(next(iter(cache)))
+    cache[key] = value
 
 
 def fringe_offset(prob, fitter, st, pixel_size, iters=10):
