@@ -259,3 +259,13 @@ def test_non_finite_edge_covariance_falls_back_to_the_residual_scatter():
     )
     assert np.isfinite(f.sigma_n) and f.sigma_n > 0
     assert any("no finite edge covariance" in s for s in f.notes)
+
+
+def test_profile_without_an_apex_in_the_window_is_said_in_words():
+    """An edge with (almost) no points within fit_height of its lowest point (stage 1 ran off the
+    tip, or missed a faint thick coating) is refused with the likely causes, not only a count."""
+    r = np.array([-30.0, -20.0, 20.0, 30.0, 40.0, 50.0]) * 1e-9
+    z = np.array([0.0, 7.0, 7.5, 9.0, 12.0, 15.0]) * 1e-9
+    with pytest.raises(FitError, match="only 1 profile points below fit_height") as exc:
+        fit_power_law(r, z, 6e-9)
+    assert "no tip apex" in str(exc.value) and "tem.orientation" in str(exc.value)

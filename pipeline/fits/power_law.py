@@ -180,7 +180,12 @@ def _fit_power_law(
     r, z, groups, side, edge = _window(r, z, fit_height, groups, flank, edge_basis, edge_cov, normal_rz)
     flank_out = groups.copy() if side is None else side.astype(int)
     if r.size < 5:
-        raise FitError(f"only {r.size} profile points below fit_height = {fit_height:.3g} m; cannot fit")
+        raise FitError(
+            f"only {r.size} profile points below fit_height = {fit_height:.3g} m; cannot fit: the edge "
+            "stage 1 extracted has no tip apex here (an edge that missed a faint thick coating or ran "
+            "off the tip, or a tip larger than the field); see the profile figure, and check "
+            "tem.orientation and that the tip fits in the image"
+        )
     h = float(fit_height)
     # work in nm-ish scaled units for conditioning
     sc = r_scale
