@@ -97,3 +97,20 @@ def test_switch_is_in_the_tip_schema(tmp_path, monkeypatch):
     bad.write_text(src.replace("tem:", "tem:\n  fringe_correction: maybe", 1))
     with pytest.raises(ConfigError, match="fringe_correction"):
         load_tip_config(bad)
+
+
+def test_offset_error_is_finite_where_the_phase_is_not_determined():
+    """In focus (A ~ 0) the phase column of J^T J is zero: the offset's standard error is taken over
+    the determined parameters (the reduced block's inverse), not NaN (which made the whole edge
+    covariance NaN on 10 of the 120 grid images); an undetermined offset gives NaN."""
+    from pipeline.tem.fringe_correction import _offset_sd
+
+    rng = np.random.default_rng(1)
+    J = rng.normal(size=(200, 4))
+    J[:, 2] = 0.0  # ln eta: no effect without propagation
+    JTJ = J.T @ J
+    keep = [0, 1, 3]
+    expect = np.sqrt(np.linalg.inv(JTJ[np.ix_(keep, keep)])[0, 0] * 2.0)
+    assert _offset_sd(JTJ, 2.0) == pytest.approx(expect, rel=1e-12)
+    J[:, 0] = 0.0
+    assert np.isnan(_offset_sd(J.T @ J, 2.0))

@@ -164,6 +164,23 @@ def _keep(cache, key, value, size=3):
     cache[key] = value
 
 
+def _offset_sd(JTJ, scale):
+    """Standard error of the offset (px) from J^T J of (delta, A, ln eta, ln s), marginal over the
+    parameters the image determines.  In focus (A ~ 0) the phase changes nothing, its column is zero
+    and J^T J singular: such columns (diagonal below 1e-10 of the largest) are left out instead of
+    making the offset's error NaN (10 of the 120 grid images).  NaN if the offset itself is not
+    determined; the correction is then not applied."""
+    d = np.diag(JTJ)
+    keep = d > 1e-10 * max(float(d.max()), 1e-300)
+    if not keep[0]:
+        return float("nan")
+    try:
+        var = np.linalg.inv(JTJ[np.ix_(keep, keep)])[0, 0] * scale
+    except np.linalg.LinAlgError:
+        return float("nan")
+    return float(np.sqrt(var)) if np.isfinite(var) and var >= 0 else float("nan")
+
+
 def fringe_offset(prob, fitter, st, pixel_size, iters=10):
     """Fit of the coherent rendering of the fitted silhouette ``st`` (module doc).  Returns a dict:
     offset_px (uniform outward offset of the edge), offset_sd_px, A_px2 (lambda df / px^2), eta
@@ -182,10 +199,7 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
     q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
     _, _, JTJ = co.lm(q, 1)  # J^T J at the solution (one more step at most)
     dof = max(1, prob.idx.size - 7)
-    try:
-        sd = float(np.sqrt(max(np.linalg.inv(JTJ)[0, 0] * max(cost / dof, 1.0), 0.0)))
-    except np.linalg.LinAlgError:
-        sd = float("nan")
+    sd = _offset_sd(JTJ, max(cost / dof, 1.0))
     delta, A = float(q[0]), float(q[1])
     bound = MAX_SHIFT_PER_FRINGE * np.sqrt(abs(A)) + SHIFT_SLACK_PX
     return dict(
@@ -195,5 +209,5 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
         eta=float(co.eta0 * np.exp(q[2])),
         sigma_px=float(co.sigma * np.exp(q[3])),
         dchi2=chi0 - cost,
-        applied=bool(chi0 - cost > MIN_DCHI2 and abs(delta) <= bound),
+        applied=bool(chi0 - cost > MIN_DCHI2 and abs(delta) <= bound and np.isfinite(sd)),
     )
