@@ -15,6 +15,7 @@ Metrics (SI units):
 - pull-off: the rigid Dugdale area factor pi (n h Q)^(2/n) (paper Eq. 12) of the fitted
   shape against the true section area pi r(h)^2 (1 + e^2/2) at h = 1..6 nm: max relative
   error, and whether the reported SD (from cov(n, ln Q)) covers it at 2 sigma;
+- chi2_red: the silhouette fit's reduced chi^2 (how far the image is from the edge model);
 - lost: the interval cannot be used -- the stage raised (reason: its message), or the
   stage-2 fit carries a flag that makes the inversion drop it
   (``pipeline.inversion.UNUSABLE_FIT_FLAGS``), or the n policy rejects it (``clip_n``).
@@ -191,6 +192,7 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
         coating_model=ct.get("model", ""),
         coating_ambiguous=bool(ct.get("ambiguous", False)),
         coating_found=float(em.get("coating_thickness", 0.0)),
+        chi2_red=float(em.get("global_chi2_red", float("nan"))),
         lost=bool(lost_reason(fit)),
         lost_reason=lost_reason(fit),
     )
