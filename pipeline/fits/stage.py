@@ -60,7 +60,7 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
 EDGE_IS_CORE_NOTE = (
     "edge_is_core: stage 1 saw a faint outer layer beyond the fitted edge on each flank alone, so the "
     "profile is the core's, not the outer surface that touches the sample; the shape is not used "
-    "(the layer's own edge is not fitted: see the stage-1 note for its thickness and contrast)"
+    "(the layer's thickness could not be read at the apex to move the edge out: see the stage-1 notes)"
 )
 
 

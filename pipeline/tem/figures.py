@@ -30,6 +30,10 @@ def plot_profile(image, profile, out_png, title=""):
     left = profile.flank < 0
     ax.plot(e[left, 1] * px * 1e9, e[left, 0] * px * 1e9, ".", ms=1.5, color="tab:orange", label="left flank")
     ax.plot(e[~left, 1] * px * 1e9, e[~left, 0] * px * 1e9, ".", ms=1.5, color="tab:cyan", label="right flank")
+    ol = (profile.edge_model.get("faint_layer") or {}).get("outer_layer") or {}
+    if "core_edge_px" in ol:  # the edge was moved out to a faint layer: the fitted (core's) edge
+        ce = ol["core_edge_px"]
+        ax.plot(ce[:, 1] * px * 1e9, ce[:, 0] * px * 1e9, ".", ms=1.0, color="gold", label="fitted edge (core)")
     a = profile.apex_px
     u = profile.axis_px
     L = 1.1 * hpx
@@ -56,14 +60,22 @@ def plot_profile(image, profile, out_png, title=""):
     ax.set_title(
         f"profile, asymmetry {profile.asymmetry_mean * 1e9:+.2f} nm (rms {profile.asymmetry_rms * 1e9:.2f})", fontsize=9
     )
-    note = (profile.edge_model.get("faint_layer") or {}).get("note", "")
-    if note:
-        import textwrap
-
-        fig.text(0.01, 0.01, "\n".join(textwrap.wrap(note, 150)), fontsize=7, va="bottom")
-        fig.tight_layout(rect=(0, 0.07, 1, 1))
-    else:
-        fig.tight_layout()
+    _notes_below(fig, profile, ol)
     with h5io.atomic_output(out_png) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)
+
+
+def _notes_below(fig, profile, ol):
+    """The faint-layer and outer-layer notes (words) under the panels, and the layout."""
+    import textwrap
+
+    note = (profile.edge_model.get("faint_layer") or {}).get("note", "")
+    if ol.get("note"):
+        note = f"{note}; {ol['note']}"
+    if not note:
+        fig.tight_layout()
+        return
+    lines = textwrap.wrap(note, 150)
+    fig.text(0.01, 0.01, "\n".join(lines), fontsize=7, va="bottom")
+    fig.tight_layout(rect=(0, 0.03 * len(lines) + 0.035, 1, 1))

@@ -180,6 +180,20 @@ def _write_faint_layer(g, fl):
     sg.attrs["found"] = bool(fl.get("found", False))
     sg.attrs["edge_is_core"] = bool(fl.get("edge_is_core", False))
     sg.attrs["note"] = fl.get("note", "")
+    ol = fl.get("outer_layer")
+    if ol:
+        # where the edge was the core's: the layer's thickness read from the image (``outer_layer``)
+        sg.attrs["edge_moved_out"] = bool(ol.get("usable", False))
+        sg.attrs["outer_layer_note"] = ol.get("note", "")
+        for key, what in (
+            ("thickness_apex", "layer thickness beyond the fitted edge at the apex, read from the image"),
+            ("thickness_apex_sd", "its standard error (in the edge covariance where the edge was moved)"),
+            ("thickness_flank", "the same on the flanks, from ramp_height above the core's apex up"),
+            ("thickness_flank_sd", "its standard error"),
+            ("ramp_height", "height above the core's apex where the thickness reaches its flank value"),
+        ):
+            if key in ol:
+                w(sg, f"outer_{key}", ol[key], "m", what)
     if not fl.get("tested"):
         return
     w(sg, "start", fl["start"], "m", "distance beyond the fitted edge from which layers are tested")
@@ -205,7 +219,7 @@ def read_profile(profile_h5):
     "edge_flags", "edge_is_core"}, pixel size (m)); edge is None or dict(edge_basis, edge_cov, normal_rz);
     edge_flags the edge model's warnings in words (a coating not identifiable, a faint layer beyond the
     edge, a singular covariance); edge_is_core True where a faint outer layer was seen beyond the
-    fitted edge on each flank alone (the profile is the core's).  h5py's errors
+    fitted edge on each flank alone and the edge was not moved out to it (the profile is the core's).  h5py's errors
     (FileNotFoundError, OSError, KeyError) pass through for the caller to word."""
     import h5py
 

@@ -197,6 +197,44 @@ def _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra):
     return out
 
 
+def _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty):
+    """Where the fitted edge is the core's: the layer's thickness read from the image and the edge moved
+    out by it (``outer_layer``), or left as it is with the reason in words. Returns (points, frame,
+    uncertainty); the thicknesses' standard errors join the edge covariance as two more basis columns
+    (the weights of T_apex and T_flank at each point)."""
+    from pipeline.tem.outer_layer import move_edge_out, outer_surface, ramp
+
+    fl = extra["faint_layer"]
+    ol = outer_surface(img, origin, pts, frame, edge_model["sigma_px"], hpx, px)
+    fl["outer_layer"] = ol
+    if not ol["usable"]:
+        ol["note"] = f"edge not moved out to the layer: {ol['note']}"
+        extra["global_flags"] = list(extra.get("global_flags", [])) + [ol["note"]]
+        return pts, frame, uncertainty
+    ta, tf = ol["thickness_apex"] / px, ol["thickness_flank"] / px
+    _, z = frame.to_tip(pts)
+    w = ramp(z, hpx)
+    basis = uncertainty[0] if uncertainty is not None else None
+    new_pts, new_basis, normals, src = move_edge_out(pts, frame, ta + (tf - ta) * w, basis)
+    if uncertainty is not None:
+        wf = np.interp(src, np.arange(len(w)), w)
+        K = uncertainty[1].shape[0]
+        cov = np.zeros((K + 2, K + 2))
+        cov[:K, :K] = uncertainty[1]
+        cov[K, K] = (ol["thickness_apex_sd"] / px) ** 2
+        cov[K + 1, K + 1] = (ol["thickness_flank_sd"] / px) ** 2
+        uncertainty = (np.column_stack([new_basis, 1.0 - wf, wf]), cov, normals)
+    fl["edge_is_core"] = False
+    ol["_core_pts"] = np.asarray(pts, float)  # the fitted (core's) edge, window px: for the figure
+    ol["note"] = (
+        f"edge moved out by the faint layer's thickness, read from the image: {ol['note']}; the outer surface "
+        "is the fitted edge plus this layer, whose own edge is too faint to fit; the thicknesses' SEs join "
+        "the edge covariance"
+    )
+    extra["global_flags"] = list(extra.get("global_flags", [])) + [ol["note"]]
+    return new_pts, _symmetry_frame(new_pts, frame, hpx), uncertainty
+
+
 def _edge_uncertainty(uncertainty, keep, x, px, frame):
     """The kept points' edge-offset basis, the offsets' covariance (m^2) and the outward
     normals in (r, z) (all None without the silhouette fit's ``uncertainty``)."""
@@ -233,6 +271,10 @@ def extract_profile(
     "global" (then one global fit of all edge pixels, ``silhouette_fit.fit_silhouette``, on
     b x b blocks of pixels finer than 0.2 nm, ``silhouette_fit.bin_factor``); ``fringe_correction``:
     the global fit's defocus-fringe correction (``pipeline.tem.fringe_correction``) on or off.
+    After the global fit, the faint-layer test (``pipeline.tem.faint_layer``) looks beyond the edge;
+    where it sees a layer on each flank alone (the edge is the core's), the layer's thickness is read
+    from the image and the edge moved out by it (``pipeline.tem.outer_layer``), or, where that
+    cannot be read at the apex, the profile is marked the core's (``edge_is_core``).
     """
     if refine not in ("normals", "global"):
         raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
@@ -251,6 +293,10 @@ def extract_profile(
     )
     if extra.get("refine") == "global":
         extra["faint_layer"] = _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra)
+        if extra["faint_layer"].get("edge_is_core"):
+            pts, frame, uncertainty = _outer_from_layer(
+                img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty
+            )
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
@@ -258,6 +304,9 @@ def extract_profile(
     a_mean, a_rms = _asymmetry(x, z, hpx)
     basis, cov, normal_rz = _edge_uncertainty(uncertainty, keep, x, px, frame)
     pts_img, apex_img, axis, angle = _in_image(pts, frame, origin, flipped, image.data.shape[0])
+    ol = (extra.get("faint_layer") or {}).get("outer_layer") or {}
+    if "_core_pts" in ol:
+        ol["core_edge_px"] = _in_image(ol.pop("_core_pts"), frame, origin, flipped, image.data.shape[0])[0]
     return TipProfile(
         pixel_size=px,
         pixel_size_source=image.source,
