@@ -219,6 +219,22 @@ def _background_fit(vals, plane_cols):
     return plane_cols @ coef, res, s
 
 
+def background_and_noise(data, valid):
+    """The quadratic illumination background of the ``valid`` pixels of ``data`` (``_background_fit``):
+    (its columns, its values, the robust residual SD, that SD inflated by the residuals' correlation)."""
+    vals = data[valid]
+    R, C = np.nonzero(valid)
+    scale = max(data.shape)
+    rn, cn = R / scale - 0.5, C / scale - 0.5
+    plane_cols = np.column_stack([np.ones(vals.size), rn, cn, rn**2, rn * cn, cn**2])
+    plane, res, s_noise = _background_fit(vals, plane_cols)
+    if np.all(vals == np.round(vals)):
+        s_noise = max(s_noise, 1.0 / np.sqrt(12.0))  # integer counts: the rounding step
+    res_map = np.zeros(data.shape)
+    res_map[valid] = res
+    return plane_cols, plane, s_noise, s_noise * np.sqrt(_noise_correlation(res_map, valid))
+
+
 def faint_layer_test(img, origin, pts, frame, sigma_px, k_body, hpx, pixel_size, coat_model="single"):
     """The faint-layer test and the detection limit (module doc) of one fitted silhouette.
 
@@ -285,15 +301,7 @@ def _test_and_limit(data, pix, d, valid, t_px, ctx):
             note=f"faint-layer test not done: the vacuum beside the tip is saturated ({100 * clipped:.0f} % of its "
             "pixels at full scale), which hides a faint layer's dimming",
         )
-    scale = max(data.shape)
-    rn, cn = R / scale - 0.5, C / scale - 0.5
-    plane_cols = np.column_stack([np.ones(vals.size), rn, cn, rn**2, rn * cn, cn**2])
-    plane, res, s_noise = _background_fit(vals, plane_cols)
-    if np.all(vals == np.round(vals)):
-        s_noise = max(s_noise, 1.0 / np.sqrt(12.0))  # integer counts: the rounding step
-    res_map = np.zeros(data.shape)
-    res_map[valid] = res
-    s_eff = s_noise * np.sqrt(_noise_correlation(res_map, valid))
+    plane_cols, plane, s_noise, s_eff = background_and_noise(data, valid)
     maps = _templates(pix, t_px, sigma_b)
     tails = _edge_tails(pix, side_x, valid, plane, [s_nm * 1e-9 / px / b for s_nm in TAIL_SCALES_NM])
     shared = _normal_equations(vals, np.column_stack([plane_cols, tails]))
@@ -303,6 +311,7 @@ def _test_and_limit(data, pix, d, valid, t_px, ctx):
         rows.append((t, a, s * s_eff, al, sl_ * s_eff, ar, sr * s_eff))
     # the core's attenuation: through the axis where that can be read, else the fitted body's
     R_all, C_all = np.mgrid[0 : data.shape[0], 0 : data.shape[1]]
+    scale = max(data.shape)
     rn, cn = R_all / scale - 0.5, C_all / scale - 0.5
     coef, *_ = np.linalg.lstsq(plane_cols, plane, rcond=None)
     plane_map = np.stack([np.ones_like(rn), rn, cn, rn**2, rn * cn, cn**2], -1) @ coef

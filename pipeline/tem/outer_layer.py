@@ -47,14 +47,13 @@ from pipeline.tem.faint_layer import (
     TAIL_SCALES_NM,
     TEST_PIXEL_NM,
     VACUUM_MARGIN_NM,
-    _background_fit,
     _block_means,
     _edge_tails,
     _flank_geometry,
-    _noise_correlation,
     _normal_equations,
     _region,
     _window_px,
+    background_and_noise,
 )
 
 __all__ = ["outer_surface", "move_edge_out", "offset_radius"]
@@ -247,16 +246,7 @@ def _nuisance(data, valid, pix, side, nm_b):
     the region's block-pixel ``data`` (``pix``: z, lateral distance, section radius maps; ``nm_b``:
     block-pixels per nm)."""
     vals = data[valid]
-    scale = max(data.shape)
-    R, C = np.nonzero(valid)
-    rn, cn = R / scale - 0.5, C / scale - 0.5
-    plane_cols = np.column_stack([np.ones(vals.size), rn, cn, rn**2, rn * cn, cn**2])
-    plane, res, s_noise = _background_fit(vals, plane_cols)
-    if np.all(vals == np.round(vals)):
-        s_noise = max(s_noise, 1.0 / np.sqrt(12.0))  # integer counts: the rounding step
-    res_map = np.zeros(data.shape)
-    res_map[valid] = res
-    s_eff = s_noise * np.sqrt(_noise_correlation(res_map, valid))
+    plane_cols, plane, _, s_eff = background_and_noise(data, valid)
     tails = _edge_tails((*pix, None), side[valid], valid, plane, [s_nm * nm_b for s_nm in TAIL_SCALES_NM])
     N, _, _ = _normal_equations(vals, np.column_stack([plane_cols, tails]))
     return plane, _Projector(vals, N, s_eff)
