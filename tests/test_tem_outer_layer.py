@@ -124,3 +124,53 @@ def test_layer_worn_off_the_apex_is_measured_or_refused(bare_below_nm):
     img, pts, frame = _layered_image(7.5e-9 / px, flank_only_above=bare_below_nm * 1e-9 / px)
     out = outer_surface(img, np.zeros(2), pts, frame, 1.0, 80.0, px)
     assert not out["usable"] or out["thickness_apex"] < 2e-9, out["note"]
+
+
+@pytest.mark.parametrize("t_apex, t_flank", [(5.0, 12.0), (12.0, 5.0), (4.0, 20.0)])
+def test_edge_moved_by_a_varying_thickness_lies_on_the_swept_body(t_apex, t_flank):
+    """A paraboloid edge (R 60 px) moved by a thickness ramping from t_apex at the apex to t_flank 24 px
+    up (dT/dz up to 0.67): the moved points lie on the outer boundary of the disk-swept body that the
+    thickness templates assume (``offset_radius``: the union of disks) within 0.15 px (0.1 px at the
+    ramp's kinks), apex included."""
+    R, zr = 60.0, 24.0
+    xs = np.linspace(-np.sqrt(2 * R * 80.0), np.sqrt(2 * R * 80.0), 200001)
+    zs = xs**2 / (2 * R)
+    frame = TipFrame(np.array([100.0, 200.0]), 0.0)
+    # ordered left flank top -> apex -> right flank top, 1 px apart
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(xs), np.diff(zs)))])
+    keep = np.searchsorted(arc, np.arange(0.0, arc[-1], 1.0))
+    x, z = xs[keep], zs[keep]
+    pts = frame.to_image(x, z)
+    t_pt = t_apex + (t_flank - t_apex) * np.clip(z / zr, 0, 1)
+    out, _, _, _ = move_edge_out(pts, frame, t_pt)
+    ox, oz = frame.to_tip(out)
+    # signed distance to the union of disks around a dense core curve: 0 on its boundary
+    cx = np.linspace(-np.sqrt(2 * R * 80.0), np.sqrt(2 * R * 80.0), 40001)
+    cz = cx**2 / (2 * R)
+    ct = t_apex + (t_flank - t_apex) * np.clip(cz / zr, 0, 1)
+    sel = oz < 60.0  # away from the top end, where the swept body is cut
+    d = np.array([np.min(np.hypot(cx - a, cz - c) - ct) for a, c in zip(ox[sel], oz[sel])])
+    assert np.max(np.abs(d)) < 0.15, (np.max(np.abs(d)), oz[sel][np.argmax(np.abs(d))])
+    assert abs(oz.min() - (-t_apex)) < 0.15  # the outer apex: t_apex below the core's
+
+
+def test_a_thickness_changing_faster_than_half_the_height_is_refused_in_words():
+    """T_apex 3 nm, T_flank 8.6 nm over a 6 nm ramp (slope 0.93, as on two held-out DLC images whose
+    moved edges gave n off by ~3): the edge is not moved, and the note says why; slope 0.4 is used."""
+    from pipeline.tem.outer_layer import MAX_RAMP_SLOPE, _verdict
+
+    def verdict(ta, tf):
+        out = dict(
+            thickness_apex=ta,
+            thickness_apex_sd=1.3e-9,
+            thickness_flank=tf,
+            thickness_flank_sd=3.0e-9,
+            ramp_height=6e-9,
+            z_apex=50.0,
+        )
+        return _verdict(out, np.arange(4.0, 100.0, 2.0), 0.1, 0.1, 4.0)
+
+    assert MAX_RAMP_SLOPE == 0.5
+    bad = verdict(3e-9, 8.6e-9)
+    assert not bad["usable"] and "changes by more than 0.5 x the height" in bad["note"]
+    assert verdict(3e-9, 5.4e-9)["usable"]

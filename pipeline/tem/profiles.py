@@ -205,7 +205,10 @@ def _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncer
     from pipeline.tem.outer_layer import move_edge_out, outer_surface, ramp
 
     fl = extra["faint_layer"]
-    ol = outer_surface(img, origin, pts, frame, edge_model["sigma_px"], hpx, px)
+    try:
+        ol = outer_surface(img, origin, pts, frame, edge_model["sigma_px"], hpx, px)
+    except (ValueError, np.linalg.LinAlgError) as exc:  # a singular fit: the profile stays the core's
+        ol = dict(usable=False, note=f"the layer's thickness could not be fitted ({exc})")
     fl["outer_layer"] = ol
     if not ol["usable"]:
         ol["note"] = f"edge not moved out to the layer: {ol['note']}"
