@@ -174,3 +174,20 @@ def test_a_thickness_changing_faster_than_half_the_height_is_refused_in_words():
     bad = verdict(3e-9, 8.6e-9)
     assert not bad["usable"] and "changes by more than 0.5 x the height" in bad["note"]
     assert verdict(3e-9, 5.4e-9)["usable"]
+
+
+def test_a_broken_fitted_edge_is_not_moved_out():
+    """The uniform layer's image with a fitted edge that zigzags (6 px in and out every 4 px of height,
+    as on DLC images whose edge loops between core and layer): turned back by stage 2's rule on more
+    than a quarter of its points, so it is not moved (the envelope would smooth the zigzag away)."""
+    from pipeline.tem.outer_layer import outer_surface, turned_back_share
+
+    px = 0.25e-9
+    img, pts, frame = _layered_image(7.5e-9 / px)
+    x, z = frame.to_tip(pts)
+    zig = 6.0 * (np.floor(z / 4.0) % 2)
+    broken = frame.to_image(np.sign(x) * (np.abs(x) - zig), z)
+    assert turned_back_share(pts, frame, 80.0, px) == 0.0
+    assert turned_back_share(broken, frame, 80.0, px) > 0.25
+    out = outer_surface(img, np.zeros(2), broken, frame, 1.0, 80.0, px)
+    assert not out["usable"] and "turns back" in out["note"]

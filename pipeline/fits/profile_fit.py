@@ -6,7 +6,9 @@ import numpy as np
 
 from pipeline.fits.power_law import EDGE_SYSTEMATIC_PX, _fit_power_law
 from pipeline.fits.result import FitError, PowerLawFit
-from pipeline.fits.screening import TURN_BACK_MAX, TURN_BACK_PX, TURN_BACK_TOL, _one_flank_runs, _turned_back, _where
+from pipeline.fits.screening import _one_flank_runs, _where
+from pipeline.tem.turn_back import TURN_BACK_MAX, TURN_BACK_PX, TURN_BACK_TOL
+from pipeline.tem.turn_back import turned_back as _turned_back
 
 
 def _systematic_px(image_chi2_red, image_n_pixels):

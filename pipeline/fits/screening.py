@@ -1,5 +1,5 @@
-"""Screening of the profile before the fit (package doc, "Screening"): points where the edge turns
-back and runs that stand out of one flank only."""
+"""Screening of the profile before the fit (package doc, "Screening"): runs that stand out of one
+flank only (points where the edge turns back: ``pipeline.tem.turn_back``, shared with stage 1)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,6 @@ import numpy as np
 
 from pipeline.fits.power_law import _model, _r_h
 
-TURN_BACK_MAX = 0.25  # share of the window's points where the edge turns back that makes it unusable
-# a point turns back where a point of its flank at least this much lower lies this much further
-# out (m, or TURN_BACK_PX pixels if more): a flat face's edge wanders by +-0.3 nm at 0.5 nm pixels
-TURN_BACK_TOL = 0.4e-9
-TURN_BACK_PX = 1.5
 RUN_SIGMA = 4.0  # contamination: a run of residuals this many robust SD outwards ...
 RUN_MIN = 0.15e-9  # ... and at least this far (m) ...
 RUN_POINTS = 4  # ... over at least this many consecutive points of one flank
@@ -25,24 +20,6 @@ def _where(r, z, side, mask):
         if m.any():
             parts.append(f"{name} flank, z {z[m].min() * 1e9:.1f}-{z[m].max() * 1e9:.1f} nm")
     return "; ".join(parts)
-
-
-def _turned_back(r, z, side, win, tol=TURN_BACK_TOL):
-    """Points (in the window) with a point of the same flank at least ``tol`` lower and ``tol``
-    further out: the radius of a worn tip grows with height, an edge that turns back is an
-    undercut (contamination, a notch) or a failed edge, never the power law."""
-    out = np.zeros(r.size, bool)
-    for s_ in (-1, 1):
-        i = np.nonzero(win & (side == s_))[0]
-        if i.size < 3:
-            continue
-        o = i[np.argsort(z[i], kind="stable")]
-        zz, rr = z[o], r[o]
-        # largest radius among the points at least tol lower
-        j = np.searchsorted(zz, zz - tol, side="right")
-        runmax = np.concatenate([[-np.inf], np.maximum.accumulate(rr)])[j]
-        out[o] = rr < runmax - tol
-    return out
 
 
 def _one_flank_runs(fit, r, z, side, use, r_scale):

@@ -27,7 +27,9 @@ that thickness from the image and moves the edge out by it:
    widened by ``THICKNESS_SD_FLOOR_NM`` (the template's own error: the scatter measured on the
    independent simulator, ``benchmarks/bench_tem_independent.py``) and by ``RAMP_SD_SHARE`` x
    |T_flank - T_apex| (where the thickness changes, how it changes is not known);
-3. refusal: a thickness the scan does not bound (at its ends: no layer beyond the apex's edge, or
+3. refusal: a fitted edge that turns back by stage 2's rule (``turned_back_share`` > 25 % up to
+   12 nm: moving it out along the envelope would smooth away the evidence that it is broken), a
+   thickness the scan does not bound (at its ends: no layer beyond the apex's edge, or
    one thicker than ``T_MAX_NM``), a layer not seen at the apex (chi^2 gain over the thinnest
    apex layer < ``APEX_Z_MIN``^2) or a thickness that changes by more than ``MAX_RAMP_SLOPE`` x the
    ramp height leaves the edge where it is, and the profile stays the core's;
@@ -62,6 +64,7 @@ from pipeline.tem.faint_layer import (
     _window_px,
     background_and_noise,
 )
+from pipeline.tem.turn_back import TURN_BACK_MAX, TURN_BACK_PX, TURN_BACK_TOL, turned_back
 
 __all__ = ["outer_surface", "move_edge_out", "offset_radius"]
 
@@ -328,6 +331,18 @@ def _verdict(out, t_px, s_apex, s_flank, nm):
     return out
 
 
+def turned_back_share(pts, frame, hpx, px):
+    """Share of the edge points up to 2 x ``Z_RAMP`` x the profile height (the core heights the moved
+    window draws on, with margin) where the edge turns back by stage 2's rule
+    (``pipeline.tem.turn_back``): a point of the same flank at least max(0.4 nm, 1.5 px) lower lies
+    as much further out."""
+    x, z = frame.to_tip(np.asarray(pts, float))
+    win = z <= 2 * Z_RAMP * hpx
+    tol = max(TURN_BACK_TOL / px, TURN_BACK_PX)
+    back = turned_back(np.abs(x), z, np.where(x < 0, -1, 1), win, tol=tol)
+    return float(back.sum() / max(win.sum(), 1))
+
+
 def outer_surface(img, origin, pts, frame, sigma_px, hpx, pixel_size):
     """Thickness of the faint layer beyond the fitted edge ``pts`` (window px; ``frame`` its symmetry
     frame, ``origin`` the window's corner in ``img``), read from ``img`` (module doc, steps 1-3).
@@ -338,6 +353,14 @@ def outer_surface(img, origin, pts, frame, sigma_px, hpx, pixel_size):
     px = float(pixel_size)
     nm = 1e-9 / px
     pts = np.asarray(pts, float)
+    back = turned_back_share(pts, frame, hpx, px)
+    if back > TURN_BACK_MAX:
+        return dict(
+            usable=False,
+            note=f"the fitted edge turns back at {100 * back:.0f} % of its points up to "
+            f"{2 * Z_RAMP * hpx * px * 1e9:.0f} nm (stage 2's rule): a broken edge is not moved out, where the "
+            "move would hide that it is broken",
+        )
     d0 = START_SIGMA * sigma_px + START_PX  # the fitted blur's reach beyond the edge
     extent = T_MAX_NM * nm + 3 * sigma_px + VACUUM_MARGIN_NM * nm
     got = _pixels(img, origin, pts, frame, sigma_px, hpx, px, d0, extent)
