@@ -191,3 +191,17 @@ def test_a_broken_fitted_edge_is_not_moved_out():
     assert turned_back_share(broken, frame, 80.0, px) > 0.25
     out = outer_surface(img, np.zeros(2), broken, frame, 1.0, 80.0, px)
     assert not out["usable"] and "turns back" in out["note"]
+
+
+def test_the_outward_side_survives_a_small_loop_at_the_apex():
+    """Nine points at the bottom of the arc in reverse order (a small loop of the edge, as on a wave
+    image at 0.4 nm px whose moved edge then went inwards): the moved points still lie outside, on the
+    circle of radius R + t (the orientation comes from the signed area, not from the lowest point)."""
+    R, t, c = 30.0, 6.0, np.array([100.0, 100.0])
+    pts = _circle_points(R, c)
+    k = int(np.argmax(pts[:, 0]))  # the lowest point in the image (largest row)
+    pts[k - 4 : k + 5] = pts[k - 4 : k + 5][::-1].copy()
+    frame = TipFrame(np.array([c[0] + R, c[1]]), 0.0)
+    out, _, _, _ = move_edge_out(pts, frame, t)
+    r = np.hypot(out[:, 0] - c[0], out[:, 1] - c[1])
+    assert np.median(r) > R + t - 0.1 and np.mean(r > R) > 0.95

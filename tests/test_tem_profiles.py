@@ -243,3 +243,19 @@ def test_stage_outputs(tmp_path):
         assert f["edge_model"].attrs["coating_model"] in ("single", "coated")
         for ds in ("asymmetry/mean", "asymmetry/rms", "edge_model/blur_sigma"):
             assert "units" in f[ds].attrs
+
+
+def test_an_apex_outside_the_image_or_a_missing_flank_is_refused_in_words():
+    """Held-out wave image 1033 (a blunt tip wider than the field) put its apex at row -4e9 with all
+    points on one flank; image 1005 (the edge ran off into a faint 19 nm layer) kept 3 points on one
+    flank only. Both are refused by stage 1, naming where the apex fell and the likely causes."""
+    from pipeline.tem.profiles import _check_apex_found
+
+    z = np.linspace(0.0, 100.0, 201)
+    x = np.concatenate([-np.sqrt(z[::-1] * 50.0), np.sqrt(z[1:] * 50.0)])
+    zz = np.concatenate([z[::-1], z[1:]])
+    _check_apex_found(np.array([200.0, 300.0]), (512, 512), x, zz, 100.0, "img.tif")  # a good one passes
+    with pytest.raises(NoTipError, match=r"img.tif: no apex found inside the image.*row -4.23e\+09"):
+        _check_apex_found(np.array([-4.23e9, 2.1e10]), (512, 512), x, zz, 100.0, "img.tif")
+    with pytest.raises(NoTipError, match=r"with 0 left and 200 right flank points near it.*wider than the field"):
+        _check_apex_found(np.array([200.0, 300.0]), (512, 512), np.abs(x), zz, 100.0, "img.tif")

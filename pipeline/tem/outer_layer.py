@@ -416,8 +416,11 @@ def move_edge_out(pts, frame, t_px, basis=None):
     tip = np.column_stack([x, z])
     t_pt = np.broadcast_to(np.asarray(t_px, float), (len(tip),)).astype(float)
     nrm, tan = curve_normals(tip, smooth=2.0)
-    # outward: away from the body, i.e. down (-z) at the lowest point
-    if nrm[int(np.argmin(z)), 1] > 0:
+    # outward: curve_normals turns the tangent by -90 deg, outward for a counter-clockwise silhouette
+    # (closed across its top); the orientation from the signed area, not from one point, which may
+    # sit on a small loop of the edge (a wave image's edge at 0.4 nm px)
+    xc, zc = np.append(x, x[0]), np.append(z, z[0])
+    if float(np.sum(xc[:-1] * zc[1:] - xc[1:] * zc[:-1])) < 0:
         nrm = -nrm
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(tip, axis=0).T))])
     # dT/ds (repeated points, of zero spacing, would divide by zero)

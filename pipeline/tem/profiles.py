@@ -197,6 +197,15 @@ def _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra):
     return out
 
 
+def _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty):
+    """The faint-layer test after the global fit, and where it finds the edge to be the core's, the
+    move out to the layer (``_outer_from_layer``). Returns (points, frame, uncertainty)."""
+    extra["faint_layer"] = _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra)
+    if extra["faint_layer"].get("edge_is_core"):
+        return _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty)
+    return pts, frame, uncertainty
+
+
 def _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty):
     """Where the fitted edge is the core's: the layer's thickness read from the image and the edge moved
     out by it (``outer_layer``), or left as it is with the reason in words. Returns (points, frame,
@@ -270,15 +279,12 @@ def extract_profile(
 ) -> TipProfile:
     """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
 
-    ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or
-    "global" (then one global fit of all edge pixels, ``silhouette_fit.fit_silhouette``, on
-    b x b blocks of pixels finer than 0.2 nm, ``silhouette_fit.bin_factor``); ``fringe_correction``:
-    the global fit's defocus-fringe correction (``pipeline.tem.fringe_correction``) on or off.
-    After the global fit, the faint-layer test (``pipeline.tem.faint_layer``) looks beyond the edge;
-    where it sees a layer on each flank alone (the edge is the core's), the layer's thickness is read
-    from the image and the edge moved out by it (``pipeline.tem.outer_layer``), or, where that
-    cannot be read at the apex, the profile is marked the core's (``edge_is_core``).
-    """
+    ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or "global" (one global fit
+    of all edge pixels, ``silhouette_fit.fit_silhouette``, on b x b blocks of pixels finer than 0.2 nm);
+    ``fringe_correction``: its defocus-fringe correction (``pipeline.tem.fringe_correction``) on/off.
+    After the global fit, a faint layer seen beyond the edge on each flank alone (``faint_layer``)
+    moves the edge out by the layer's thickness read from the image (``outer_layer``), or, where that
+    cannot be read at the apex, marks the profile the core's (``edge_is_core``)."""
     if refine not in ("normals", "global"):
         raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
     path = image.path or "<image>"
@@ -295,11 +301,7 @@ def extract_profile(
         win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction
     )
     if extra.get("refine") == "global":
-        extra["faint_layer"] = _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra)
-        if extra["faint_layer"].get("edge_is_core"):
-            pts, frame, uncertainty = _outer_from_layer(
-                img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty
-            )
+        pts, frame, uncertainty = _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty)
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
@@ -307,6 +309,7 @@ def extract_profile(
     a_mean, a_rms = _asymmetry(x, z, hpx)
     basis, cov, normal_rz = _edge_uncertainty(uncertainty, keep, x, px, frame)
     pts_img, apex_img, axis, angle = _in_image(pts, frame, origin, flipped, image.data.shape[0])
+    _check_apex_found(apex_img, image.data.shape, x, z, hpx, path)
     ol = (extra.get("faint_layer") or {}).get("outer_layer") or {}
     if "_core_pts" in ol:
         ol["core_edge_px"] = _in_image(ol.pop("_core_pts"), frame, origin, flipped, image.data.shape[0])[0]
@@ -359,6 +362,26 @@ def _clip_height(cont, frame, hmax):
     while hi < len(z) - 1 and inside[hi + 1]:
         hi += 1
     return cont[lo : hi + 1]
+
+
+def _check_apex_found(apex_img, shape, x, z, hpx, path, min_points=10):
+    """The silhouette must have an apex inside the image and points on both flanks near it: a blunt
+    tip wider than the field (its flanks leave the image sides) gives a mirror line, and so an apex,
+    anywhere (held-out wave image 1033: row -4e9)."""
+    H, W = shape
+    inside = bool(np.all(np.isfinite(apex_img)) and -0.5 <= apex_img[0] <= H - 0.5 and -0.5 <= apex_img[1] <= W - 0.5)
+    near = z <= 0.5 * hpx
+    n_left, n_right = int(np.sum(near & (x < 0))), int(np.sum(near & (x > 0)))
+    if inside and min(n_left, n_right) >= min_points:
+        return
+    where = f"row {apex_img[0]:.4g}, col {apex_img[1]:.4g}" if np.all(np.isfinite(apex_img)) else "nowhere"
+    raise NoTipError(
+        path,
+        f"no apex found inside the image: the silhouette's mirror line puts it at {where} px, with "
+        f"{n_left} left and {n_right} right flank points near it; the tip may be wider than the field "
+        "of view (its flanks leave the image sides), its apex cut by the border, or the edge may have "
+        "left the tip (a faint thick coating): image a larger field, or check tem.orientation",
+    )
 
 
 def _check_border(cont, shape, frame, hpx, path, r0, c0, H, W):
