@@ -14,36 +14,42 @@ import pytest
 SEEDS = (7, 11)
 
 
-def _profile(seed, layer):
+def _clean_tip(seed, layer, pixel_size, side, **kw):
+    """A wave-simulator image of a clean tip (no particles, in focus, SNR 20, 16 bit, R 12 nm):
+    (TemImage, truth, params)."""
     from pipeline.synth.tem_wave import draw_params, simulate
-    from pipeline.synth.tem_wave_truth import edge_errors
-    from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import TemImage
 
-    kw = dict(layer_thickness=12e-9, layer_contrast=0.06) if layer == "DLC" else {}
     p = draw_params(
         seed,
         layer=layer,
         apex_particles=False,
         shank_contamination=False,
         defocus=0.0,
-        pixel_size=0.4e-9,
+        pixel_size=pixel_size,
         snr=20.0,
         bits=16,
-        shape=(320, 320),
+        shape=(side, side),
         R=12e-9,
         **kw,
     )
     img, truth = simulate(p)
-    image = TemImage(img.astype(float), p.pixel_size, "synthetic")
+    return TemImage(img.astype(float), p.pixel_size, "synthetic"), truth, p
+
+
+def _profile(seed, layer):
+    from pipeline.synth.tem_wave_truth import edge_errors
+    from pipeline.tem.profiles import extract_profile
+
+    kw = dict(layer_thickness=12e-9, layer_contrast=0.06) if layer == "DLC" else {}
+    image, truth, _ = _clean_tip(seed, layer, 0.4e-9, 320, **kw)
     # the fitted edge itself (the core's): the edge left where the fit put it
     keep_edge = lambda img, origin, pts, frame, *args: (pts, frame, args[-1])  # noqa: E731
     with mock.patch("pipeline.tem.profiles._outer_from_layer", keep_edge):
         prof = extract_profile(image)
     sel = (prof.z >= 6e-9) & (prof.z <= 19e-9)
     beyond = max(0.0, -edge_errors(prof.edge_px, truth, sel)["bias"]) if layer == "DLC" else 0.0
-    moved = extract_profile(image)  # as the stage runs: moved out to the layer where it is the core's
-    return dict(image=image, profile=prof, beyond=beyond, moved=moved, truth=truth, params=p)
+    return dict(image=image, profile=prof, beyond=beyond)
 
 
 @pytest.fixture(scope="module")
@@ -139,28 +145,11 @@ def test_a_layer_seen_reaches_the_fit_and_the_inversion_notes(cases, tmp_path):
 def moved_cases():
     """DLC layers of 8 nm (0.25 nm px) and 12 nm (0.3 nm px) at 6 % of the core's contrast, in focus,
     SNR 20, as the stage runs them (seed 11: the fit follows the core, the layer is seen beyond it)."""
-    from pipeline.synth.tem_wave import draw_params, simulate
     from pipeline.tem.profiles import extract_profile
-    from pipeline.tem.reading import TemImage
 
     out = {}
     for t, px, side in ((8e-9, 0.25e-9, 448), (12e-9, 0.3e-9, 384)):
-        p = draw_params(
-            11,
-            layer="DLC",
-            apex_particles=False,
-            shank_contamination=False,
-            defocus=0.0,
-            pixel_size=px,
-            snr=20.0,
-            bits=16,
-            shape=(side, side),
-            R=12e-9,
-            layer_thickness=t,
-            layer_contrast=0.06,
-        )
-        img, truth = simulate(p)
-        image = TemImage(img.astype(float), p.pixel_size, "synthetic")
+        image, truth, p = _clean_tip(11, "DLC", px, side, layer_thickness=t, layer_contrast=0.06)
         out[t] = dict(image=image, profile=extract_profile(image), truth=truth, params=p)
     return out
 

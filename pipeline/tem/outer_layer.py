@@ -169,13 +169,6 @@ class _Projector:
         self.var = var
         return factor
 
-    def amplitudes(self, cols):
-        """Least-squares amplitudes of ``cols`` over the nuisance and their standard errors."""
-        C = np.column_stack(cols)
-        NtC = self.N.T @ C
-        inv = np.linalg.inv(C.T @ C - NtC.T @ self.NtN_inv @ NtC)
-        return inv @ (C.T @ self.res), np.sqrt(np.clip(np.diag(inv), 0, None) * self.var)
-
     def gain(self, g, lap):
         """chi^2 drop from adding the layer column ``g`` (constrained to darken: where its amplitude
         comes out negative, the gain of the fringe column alone) and its fringe column ``lap``."""
@@ -240,7 +233,7 @@ def _line(tpl, proj, nt, fixed, centre, apex):
 
 def _scan(tpl, proj, nt):
     """(T_apex index, T_flank index, apex gains over the grid at the best T_flank, flank gains at the
-    best T_apex (NaN away from the best), uniform gains): the uniform scan, then coordinate ascent
+    best T_apex (NaN away from the best)): the uniform scan, then coordinate ascent
     (module doc, step 2)."""
     q_u = np.array([proj.gain(*tpl(k, k)) for k in range(nt)])
     ia = jf = int(np.argmax(q_u))
@@ -251,15 +244,15 @@ def _scan(tpl, proj, nt):
         q_f = _line(tpl, proj, nt, ia_new, jf, apex=False)
         jf_new = int(np.nanargmax(q_f))
         if (ia_new, jf_new) == (ia, jf):
-            return ia, jf, q_a, q_f, q_u
+            return ia, jf, q_a, q_f
         ia, jf = ia_new, jf_new
     # not converged in ROUNDS: both lines at the final pair, so that they describe one point
     q_a = _line(tpl, proj, nt, jf, ia, apex=True)
     q_f = _line(tpl, proj, nt, ia, jf, apex=False)
-    return ia, jf, q_a, q_f, q_u
+    return ia, jf, q_a, q_f
 
 
-def _pixels(img, origin, pts, frame, sigma_px, hpx, px, d0, extent):
+def _pixels(img, origin, pts, frame, hpx, px, d0, extent):
     """Block-pixel maps of the region around the edge: (data, block size b, tip-frame z and lateral
     distance from the section centre (image px), valid mask, section (zg, rho, centre)) or None."""
     geo = _flank_geometry(pts, frame, hpx)
@@ -363,7 +356,7 @@ def outer_surface(img, origin, pts, frame, sigma_px, hpx, pixel_size):
         )
     d0 = START_SIGMA * sigma_px + START_PX  # the fitted blur's reach beyond the edge
     extent = T_MAX_NM * nm + 3 * sigma_px + VACUUM_MARGIN_NM * nm
-    got = _pixels(img, origin, pts, frame, sigma_px, hpx, px, d0, extent)
+    got = _pixels(img, origin, pts, frame, hpx, px, d0, extent)
     if got is None:
         return dict(usable=False, note="too few edge points on a flank to model the layer")
     data, b, (z, xc), valid, side, (zg, rho, rho_map) = got
@@ -373,14 +366,13 @@ def outer_surface(img, origin, pts, frame, sigma_px, hpx, pixel_size):
     sigma_b = float(np.sqrt(sigma_px**2 + (b * b - 1) / 12.0)) / b
     t_px = np.arange(max(d0 + 1.0, 1.0 * nm), T_MAX_NM * nm + 1e-9, STEP_NM * nm)
     tpl = _Templates((z, xc), zg, rho, hpx, sigma_b, plane, valid, t_px)
-    ia, jf, q_a, q_f, q_u = _scan(tpl, proj, t_px.size)
+    ia, jf, q_a, q_f = _scan(tpl, proj, t_px.size)
     # the noise with the layer in the model: the gains so far were in units of a variance that held
     # the layer's own dimming (conservative, and blind to the noise level)
     f = proj.rescale_noise(tpl(ia, jf), data.shape, valid)
-    q_a, q_f, q_u = q_a * f, q_f * f, q_u * f
+    q_a, q_f = q_a * f, q_f * f
     t_apex, s_apex = _peak(t_px, q_a)
     t_flank, s_flank = _peak(t_px, q_f)
-    (a_g, a_l), (se_g, se_l) = proj.amplitudes(tpl(ia, jf))
     fa, ff = THICKNESS_SD_FLOOR_NM["apex"] * nm, THICKNESS_SD_FLOOR_NM["flank"] * nm
     q_thin = proj.gain(*tpl(0, jf))  # the thinnest apex layer
     z_apex = float(np.sqrt(max(np.nanmax(q_a) - q_thin, 0.0)))
@@ -390,12 +382,8 @@ def outer_surface(img, origin, pts, frame, sigma_px, hpx, pixel_size):
         thickness_apex_sd=float(np.sqrt(s_apex**2 + fa**2 + ramp_sd**2)) * px,
         thickness_flank=t_flank * px,
         thickness_flank_sd=float(np.sqrt(s_flank**2 + ff**2 + ramp_sd**2)) * px,
-        thickness_uniform=float(t_px[int(np.argmax(q_u))]) * px,
         ramp_height=Z_RAMP * hpx * px,
         z_apex=z_apex,
-        z_layer=float(np.sqrt(max(np.nanmax(q_a), 0.0))),
-        fringe_length2=float(a_l / a_g) * (b * px) ** 2 if a_g > 0 else float("nan"),
-        fringe_z=float(a_l / se_l) if se_l > 0 else float("nan"),
     )
     return _verdict(out, t_px, s_apex, s_flank, nm)
 
