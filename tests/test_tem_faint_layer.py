@@ -15,26 +15,10 @@ SEEDS = (7, 11)
 
 
 def _clean_tip(seed, layer, pixel_size, side, **kw):
-    """A wave-simulator image of a clean tip (no particles, in focus, SNR 20, 16 bit, R 12 nm):
-    (TemImage, truth, params)."""
-    from pipeline.synth.tem_wave import draw_params, simulate
-    from pipeline.tem.reading import TemImage
+    """``wave_images.clean_tip``: (TemImage, truth, params)."""
+    from wave_images import clean_tip
 
-    p = draw_params(
-        seed,
-        layer=layer,
-        apex_particles=False,
-        shank_contamination=False,
-        defocus=0.0,
-        pixel_size=pixel_size,
-        snr=20.0,
-        bits=16,
-        shape=(side, side),
-        R=12e-9,
-        **kw,
-    )
-    img, truth = simulate(p)
-    return TemImage(img.astype(float), p.pixel_size, "synthetic"), truth, p
+    return clean_tip(seed, layer, pixel_size, side, **kw)
 
 
 def _profile(seed, layer):

@@ -36,6 +36,9 @@ from pipeline.tem.projection import chord, core_radius_table
 __all__ = ["CoarseTip", "locate_tip", "initial_contour", "TipFrame", "refine_edges"]
 
 
+SATURATED_FRACTION = 2e-3  # share of the window at its maximum that marks a clipped (saturated) detector
+
+
 @dataclass
 class CoarseTip:
     apex: np.ndarray  # (row, col) px, full image, tip pointing down
@@ -220,10 +223,23 @@ def _perpendicular_cut_axis(mask, apex_r, apex_c, theta, hgt, iters=6):
     return theta
 
 
-def flatten_background(win):
+def saturated_pixels(win, min_fraction=SATURATED_FRACTION):
+    """Pixels a saturated detector clipped (bool, ``win``'s shape), or None: those at the window's
+    maximum where more than ``min_fraction`` of the window holds it.  An unclipped image reaches
+    its maximum in a handful of pixels (a float image in one); an over-exposed vacuum (8- or
+    16-bit, the beam above full scale) in a plateau of them."""
+    top = float(np.max(win))
+    at_top = win >= top
+    return at_top if float(np.mean(at_top)) > min_fraction else None
+
+
+def flatten_background(win, saturated=None):
     """Divide by a plane fitted to the background pixels; returns (flat window, noise sigma).
 
     Removes slow illumination gradients so one iso-level follows the outer surface.
+    ``saturated`` (``saturated_pixels``): the plateau of a clipped vacuum has no noise, so the
+    noise is read from the pixel pairs that are not clipped, each difference scaled by the square
+    root of the pair's flattened level (Poisson: the noise at the background level 1).
     """
     from skimage.filters import threshold_otsu
 
@@ -242,9 +258,24 @@ def flatten_background(win):
     R, C = np.mgrid[0 : win.shape[0], 0 : win.shape[1]]
     plane = coef[0] + coef[1] * R / win.shape[0] + coef[2] * C / win.shape[1]
     flat = win / plane
+    if saturated is not None:
+        return flat, _unclipped_noise(flat, saturated)
     pair = bgmask[:, :-1] & bgmask[:, 1:]
     noise = 1.4826 * float(np.median(np.abs(np.diff(flat, axis=1)[pair]))) / np.sqrt(2)
     return flat, noise
+
+
+def _unclipped_noise(flat, saturated):
+    """Noise sigma at the flattened level 1 from horizontal pixel pairs of which neither is
+    clipped nor dark (level > 0.05): median |difference| / sqrt(2 x mean level) (robust to the
+    few pairs that straddle an edge)."""
+    ok = ~saturated[:, :-1] & ~saturated[:, 1:]
+    level = 0.5 * (flat[:, :-1] + flat[:, 1:])
+    ok &= level > 0.05
+    if np.count_nonzero(ok) < 50:
+        raise _Fail("the detector is saturated almost everywhere (fewer than 50 unclipped pixel pairs)")
+    d = np.abs(np.diff(flat, axis=1))[ok] / np.sqrt(level[ok])
+    return 1.4826 * float(np.median(d)) / np.sqrt(2)
 
 
 def initial_contour(win, level, apex_hint, smooth=1.0):

@@ -74,18 +74,23 @@ class _Coherent:
         self.eta0 = PHASE_PER_M * float(pixel_size or 0.25e-9)
         self._fields = {}
         self._waves = {}  # (delta, eta) -> exit wave (complex64) and |psi|^2 at the needed pixels
+        self._spectra = {}  # (delta, eta, padding) -> FFT of the padded exit wave (A's column reuses it)
         self._fringes = {}  # (delta, A, eta) -> dI at the needed pixels (the blur's column reuses it)
 
     def fields(self, delta):
-        """(t_outer, t_core at every rectangle pixel centre, sub-sampled T at the needed pixels)
-        of the curve moved by ``delta`` (the last three kept)."""
+        """(t_outer, t_core at every rectangle pixel centre, sub-sampled T at the needed pixels,
+        indices of the rectangle pixels with material) of the curve moved by ``delta`` (the last
+        three kept).  One body serves both, and the needed pixels' centre chords are the
+        rectangle's (the same numbers as the silhouette model's own)."""
         key = float(delta)
         if key not in self._fields:
             c = self.c + delta
-            x, z = self.p.curve(c)
-            t_o, t_c = _Body(x, z, self.coat).chords(self.px, self.pz)
-            T = self.p.transmission(self.p.chords(c, self.coat), self.k_o, self.k_c)
-            _keep(self._fields, key, (t_o, t_c, T))
+            body = _Body(*self.p.curve(c), self.coat)
+            t_o, t_c = body.chords(self.px, self.pz)
+            need = self.p.need
+            ch = self.p.chords(c, self.coat, body=body, centres=(t_o[need], t_c[need]))
+            T = self.p.transmission(ch, self.k_o, self.k_c)
+            _keep(self._fields, key, (t_o, t_c, T, np.nonzero((t_o > 0) | (t_c > 0))[0]))
         return self._fields[key]
 
     def grid(self, A):
@@ -103,8 +108,9 @@ class _Coherent:
         moved by ``delta`` with phase per length ``eta`` (the last three kept)."""
         key = (float(delta), float(eta))
         if key not in self._waves:
-            t_o, t_c, _ = self.fields(delta)
-            psi = np.exp(-0.5 * (self.k_o * t_o + (self.k_c - self.k_o) * t_c) + 1j * eta * t_o)
+            t_o, t_c, _, m = self.fields(delta)
+            psi = np.ones(t_o.size, complex)  # vacuum: exp(0) = 1
+            psi[m] = np.exp(-0.5 * (self.k_o * t_o[m] + (self.k_c - self.k_o) * t_c[m]) + 1j * eta * t_o[m])
             _keep(self._waves, key, (psi.astype(np.complex64).reshape(self.p.shape), np.abs(psi[self.p.need]) ** 2))
         return self._waves[key]
 
@@ -115,8 +121,12 @@ class _Coherent:
             psi, psi2 = self.wave(delta, eta)
             H, W = self.p.shape
             pad, full, fy2, fx2 = self.grid(A)
-            widths = ((pad, full[0] - H - pad), (pad, full[1] - W - pad))
-            spec = sfft.fft2(np.pad(psi, widths, mode="edge"), workers=1, overwrite_x=True)
+            skey = (float(delta), float(eta), pad)
+            if skey not in self._spectra:
+                widths = ((pad, full[0] - H - pad), (pad, full[1] - W - pad))
+                spectrum = sfft.fft2(np.pad(psi, widths, mode="edge"), workers=1, overwrite_x=True)
+                _keep(self._spectra, skey, spectrum, size=2)
+            spec = self._spectra[skey].copy()
             spec *= np.exp(1j * np.pi * A * fy2).astype(np.complex64)[:, None]
             spec *= np.exp(1j * np.pi * A * fx2).astype(np.complex64)[None, :]
             out = sfft.ifft2(spec, workers=1, overwrite_x=True)[pad : pad + H, pad : pad + W].ravel()[self.p.need]
@@ -129,7 +139,7 @@ class _Coherent:
         T = self.fields(delta)[2]
         M = T + self.fringe(delta, A, self.eta0 * np.exp(leta)) if A != 0 else T
         B = self.p.blurred(M, self.sigma * np.exp(lsig))
-        return (self.p.I - B @ self.p.linear(B)) * self.p.w
+        return (self.p.I - self.p.model(B, self.p.linear(B))) * self.p.w
 
     def lm(self, q, iters):
         """Levenberg-Marquardt from q: (q, chi^2, J^T J)."""
@@ -137,7 +147,7 @@ class _Coherent:
         cost, JTJ, lam = float(r @ r), None, 1e-2
         lim = np.array([1.5, 0.25 * abs(q[1]) + 5.0, 0.5, 0.3])  # step limits
         for _ in range(iters):
-            J = np.column_stack([(self.residual(q + e * h) - r) / h for e, h in zip(np.eye(4), _FD)])
+            J = self.jacobian(q, r)
             JTJ, g = J.T @ J, J.T @ r
             for _ in range(5):
                 dq = np.clip(-np.linalg.solve(JTJ + lam * np.diag(np.diag(JTJ) + 1e-12), g), -lim, lim)
@@ -155,6 +165,11 @@ class _Coherent:
             if gain < 1e-4 * cost:
                 break
         return q, cost, JTJ
+
+    def jacobian(self, q, r=None):
+        """Forward-difference Jacobian of ``residual`` at q (steps ``_FD``)."""
+        r = self.residual(q) if r is None else r
+        return np.column_stack([(self.residual(q + e * h) - r) / h for e, h in zip(np.eye(4), _FD)])
 
 
 def _keep(cache, key, value, size=3):
@@ -197,7 +212,8 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
         starts.append(np.array([-(0.8 if A < 0 else 0.3) * np.sqrt(abs(A)), A, 0.0, ls0]))
     runs = [co.lm(q, START_STEPS) for q in starts]
     q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
-    _, _, JTJ = co.lm(q, 1)  # J^T J at the solution (one more step at most)
+    J = co.jacobian(q)
+    JTJ = J.T @ J  # at the solution
     dof = max(1, prob.idx.size - 7)
     sd = _offset_sd(JTJ, max(cost / dof, 1.0))
     delta, A = float(q[0]), float(q[1])

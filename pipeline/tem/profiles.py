@@ -22,6 +22,7 @@ from pipeline.tem.edges import (
     initial_contour,
     locate_tip,
     refine_edges,
+    saturated_pixels,
 )
 from pipeline.tem.errors import ApexAtBorderError, NoTipError
 from pipeline.tem.reading import TemImage
@@ -92,8 +93,8 @@ def _fail(path, exc):
 
 
 def _window_and_contour(img, coarse, hpx, path):
-    """(window, its origin in ``img``, flattened window, noise, initial contour, tip frame) of
-    ``extract_profile``."""
+    """(window, its origin in ``img``, flattened window, noise, initial contour, tip frame, clipped
+    pixels of the window or None) of ``extract_profile``."""
     H, W = img.shape
     # window: bounding box of the tip within 1.3 x profile_height of the apex, + margins;
     # grown where the outer contour runs into a window side (light coatings may be
@@ -108,7 +109,11 @@ def _window_and_contour(img, coarse, hpx, path):
         c0, c1 = int(max(0, bc0 - m["left"])), int(min(W, bc1 + m["right"]))
         win = img[r0:r1, c0:c1].astype(np.float64)
         origin = np.array([r0, c0], float)
-        flat, noise = flatten_background(win)
+        saturated = saturated_pixels(win)
+        try:
+            flat, noise = flatten_background(win, saturated)
+        except _Fail as exc:
+            raise _fail(path, exc) from None
         level = _edge_level(flat, noise)
         try:
             cont = initial_contour(flat, level, ca - origin, smooth=2.0)
@@ -128,13 +133,13 @@ def _window_and_contour(img, coarse, hpx, path):
     if len(cont) < 10:
         raise NoTipError(path, "no tip in the image (edge too short near the apex)")
     _check_border(cont, win.shape, frame, hpx, path, r0, c0, H, W)
-    return win, origin, flat, noise, cont, frame
+    return win, origin, flat, noise, cont, frame, saturated
 
 
-def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction=True):
+def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction=True, saturated=None):
     """(edge points, symmetry frame, edge model, extra edge-model entries, (basis, cov_c, normals) or
     None) of ``extract_profile``: the global silhouette fit, or the per-normal fits where it is not
-    asked for or fails."""
+    asked for or fails.  ``saturated``: the window's clipped pixels (censored in the global fit)."""
     extra, uncertainty, gf = {}, None, None
     if refine == "global":
         from pipeline.tem.silhouette_fit import fit_silhouette
@@ -142,7 +147,15 @@ def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fri
         sym = _symmetry_frame(cont, frame, hpx)
         try:
             gf = fit_silhouette(
-                flat, cont, sym, hpx, noise, pixel_size=px, coat_hint=coat_hint, fringe_correction=fringe_correction
+                flat,
+                cont,
+                sym,
+                hpx,
+                noise,
+                pixel_size=px,
+                coat_hint=coat_hint,
+                fringe_correction=fringe_correction,
+                censored=saturated,
             )
         except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # fall back to per-normal fits
             extra = dict(refine="normals", global_flags=[f"global fit failed: {exc}"])
@@ -296,9 +309,9 @@ def extract_profile(
     except _Fail as exc:
         raise _fail(path, exc) from None
     img = image.data[::-1] if flipped else image.data
-    win, origin, flat, noise, cont, frame = _window_and_contour(img, coarse, hpx, path)
+    win, origin, flat, noise, cont, frame, saturated = _window_and_contour(img, coarse, hpx, path)
     pts, frame, edge_model, extra, uncertainty = _refined_edge(
-        win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction
+        win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction, saturated
     )
     if extra.get("refine") == "global":
         pts, frame, uncertainty = _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty)

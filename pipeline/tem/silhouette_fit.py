@@ -50,6 +50,15 @@ uniform offset of the edge with the defocus, the phase and the blur; the offset 
 "defocus fringes: edge moved ...", its standard error added to the edge covariance as a common
 offset) if it lowers chi^2 enough and is no larger than a fringe can shift the edge.
 
+Saturated detector (``censored``): where the beam is above the detector's full scale (8- or
+16-bit images of an over-exposed vacuum), the clipped pixels read the full scale instead of the
+image, and fitting them as data pulls the model's vacuum down to it and the edge inwards (by up to
+2.5 nm on the independent simulator's saturated images).  A clipped pixel says only that the
+image is at least its value: its residual is (value - model) where the model is below it and 0
+where it is above (a censored observation), the illumination is solved on the unclipped pixels,
+and the noise is read from unclipped pixel pairs (``edges.flatten_background``).  The fit's
+flags say how many of its pixels were clipped.
+
 The result carries, for every output edge point, its B-spline row and the
 covariance of the c_k (marginal over all other parameters, px^2; from finite-
 difference spline columns at the solution, ``_Fitter.polish``): the fit stage
@@ -82,6 +91,12 @@ from pipeline.tem.silhouette_model import (
     reference_curve,
 )
 from pipeline.tem.silhouette_solver import _Fitter
+
+# a saturated detector (module doc): where at least this share of the fitted vacuum beside the edge
+# is clipped, the edge gets a common offset SD of SATURATED_EDGE_SD_NM (nm): the RMS of the edge bias
+# on the independent simulator's images whose vacuum is clipped (bench_tem_independent, 120-image grid)
+SATURATED_VACUUM_SHARE = 0.5
+SATURATED_EDGE_SD_NM = 1.0
 
 __all__ = ["GlobalFit", "fit_silhouette", "reference_curve", "bin_factor", "COAT_DCHI2", "_Body", "_Fitter", "_bspline"]
 
@@ -120,17 +135,20 @@ def fit_silhouette(
     max_iter=25,
     binning=None,
     fringe_correction=True,
+    censored=None,
 ) -> GlobalFit:
     """Fit the silhouette model (module doc) to ``flat`` (window with the background
     flattened to 1, tip pointing down), starting from ``contour`` (iso-line outside the
     surface, window px) in ``frame``; ``hpx`` profile height (px), ``noise`` background
     noise (relative); ``coat_hint`` None (auto), 0 (none) or a thickness (px).
     ``binning``: block size (default ``bin_factor(pixel_size)``); results are in the
-    pixels of ``flat``; ``fringe_correction``: the defocus-fringe correction (module doc) on/off."""
+    pixels of ``flat``; ``fringe_correction``: the defocus-fringe correction (module doc) on/off;
+    ``censored`` (bool, ``flat``'s shape, or None): pixels a saturated detector clipped, whose true
+    value is at least the one read (module doc, "Saturated detector")."""
     b = int(binning or bin_factor(pixel_size))
     if b > 1:
         return _fit_binned(
-            flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b, fringe_correction
+            flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b, fringe_correction, censored
         )
     flat = np.asarray(flat, float)
     knot_nm = knot_nm if knot_nm is not None else KNOT_NM
@@ -139,7 +157,7 @@ def fit_silhouette(
     # would pass straight into the result, the spline offsets correct the large scales
     curve = reference_curve(frame.to_tip(contour), smooth_px=1.5 * knot)
     # noise floor 0.2 % of the background: model error of the forward model (noise-free images)
-    prob = _Problem(flat, frame, curve, hpx, max(float(noise or 0.0), 2e-3), knot)
+    prob = _Problem(flat, frame, curve, hpx, max(float(noise or 0.0), 2e-3), knot, censored=censored)
     k_ax = _axis_attenuation(flat, frame, curve)
     k0 = k_ax if np.isfinite(k_ax) and k_ax > 0 else 0.02
     max_coat = 12.0
@@ -172,8 +190,11 @@ def fit_silhouette(
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
 
 
-def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b, fringe_correction=True):
-    """``fit_silhouette`` on b x b blocks, its result in the pixels of ``flat``."""
+def _fit_binned(
+    flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b, fringe_correction=True, censored=None
+):
+    """``fit_silhouette`` on b x b blocks, its result in the pixels of ``flat`` (a block with a
+    clipped pixel is censored: its mean is a lower bound too)."""
     off = 0.5 * (b - 1)
     gf = fit_silhouette(
         _bin(np.asarray(flat, float), b),
@@ -187,6 +208,7 @@ def _fit_binned(flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm
         max_iter,
         binning=1,
         fringe_correction=fringe_correction,
+        censored=None if censored is None else _bin(np.asarray(censored, float), b) > 0,
     )
     gf.points = gf.points * b + off
     gf.frame = TipFrame(gf.frame.apex * b + off, gf.frame.angle)
@@ -239,7 +261,7 @@ def _single_layer_fit(prob, k0, max_coat, max_iter):
             best = st
     best, _, _, it = f1.run(best.v, "uniform", 6, *lim1, tol=1e-4)
     n_it += it
-    prob.set_weights(best.B @ best.lin)
+    prob.set_weights(prob.model(best.B, best.lin))
     # 2) single layer, full shape; then again relative to the fitted shape (the penalty
     #    on the offsets' curvature would otherwise keep the contour's rounded corners)
     st1, _, _, it = f1.run(best.v, "full", max_iter, *lim1)
@@ -252,6 +274,30 @@ def _single_layer_fit(prob, k0, max_coat, max_iter):
     st1, _, _, it = f1.run(np.concatenate([np.zeros(K), glob]), "full", max_iter, *lim1)
     n_it += it
     return f1, st1, n_it
+
+
+def _saturation(prob, st, pixel_size):
+    """(words, common edge-offset SD in px) of a fit with censored (clipped) pixels.  Where most of
+    the fitted vacuum beside the edge is clipped, the vacuum level is only known to be above full
+    scale, and the outermost part of the tip (a light oxide, the thin rim) that transmits more than
+    full scale / vacuum is not seen: its width is not in the image.  The edge then carries a common
+    offset of ``SATURATED_EDGE_SD_NM`` (measured on the independent simulator, module doc)."""
+    n_cens = int(np.count_nonzero(prob.cens))
+    vac = st.T[prob.res_in_need] >= 0.999  # fitted pixels outside the body (the model's vacuum)
+    share = float(np.mean(prob.cens[vac])) if vac.any() else 0.0
+    words = (
+        f"saturated detector: {n_cens} of the {prob.idx.size} fitted pixels "
+        f"({100.0 * n_cens / prob.idx.size:.0f} %) read full scale and were fitted as lower bounds"
+    )
+    if share < SATURATED_VACUUM_SHARE:
+        return words + f" ({100 * share:.0f} % of the vacuum beside the edge)", 0.0
+    px = float(pixel_size or 0.25e-9)
+    return (
+        words + f"; the vacuum beside the edge is clipped ({100 * share:.0f} %), so a light layer or the "
+        "tip's outer rim brighter than full scale is not seen: the edge carries a common uncertainty of "
+        f"{SATURATED_EDGE_SD_NM:.1f} nm for it",
+        SATURATED_EDGE_SD_NM * 1e-9 / px,
+    )
 
 
 def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None, fringe=None):
@@ -269,6 +315,10 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
         flags.append(f"edge offset hit its bound (+-6 px) at {hit.size} of {K} knots")
     if fringe.get("applied"):
         c = c + fringe["offset_px"]
+    if prob.cens is not None:
+        words, sd_px = _saturation(prob, st, pixel_size)
+        flags.append(words)
+        cov_c = cov_c + sd_px**2 * np.ones((K, K))
     pts, nrm, basis = _outer_silhouette(prob, c, hpx)
     rms = float(np.sqrt(np.mean((st.res / prob.w) ** 2)))
     return GlobalFit(

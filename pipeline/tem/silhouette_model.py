@@ -227,7 +227,7 @@ def _chord_in_place(r2, xx, below):
 class _Problem:
     """Fixed pixel geometry, data and the forward model of one silhouette fit."""
 
-    def __init__(self, img, frame, curve, hpx, noise, knot, sigma_max=4.0):
+    def __init__(self, img, frame, curve, hpx, noise, knot, sigma_max=4.0, censored=None):
         self.img, self.frame = img, frame
         self.knot = knot
         self.set_reference(curve)
@@ -275,9 +275,9 @@ class _Problem:
         pos[self.need] = np.arange(self.need.size)
         self.res_in_need = pos[self.idx]
         self.I = img[r_lo:r_hi, c_lo:c_hi].ravel()[self.idx]
-        rn = (RR.ravel()[self.idx] - 0.5 * (r_lo + r_hi)) / max(H, 1)
-        cn = (CC.ravel()[self.idx] - 0.5 * (c_lo + c_hi)) / max(W, 1)
-        self.rn, self.cn = rn, cn
+        self.cens = _censored_at(censored, (slice(r_lo, r_hi), slice(c_lo, c_hi)), self.idx)
+        self.rn = (RR.ravel()[self.idx] - 0.5 * (r_lo + r_hi)) / max(H, 1)
+        self.cn = (CC.ravel()[self.idx] - 0.5 * (c_lo + c_hi)) / max(W, 1)
         self.rows, self.cols = RR.ravel()[self.idx], CC.ravel()[self.idx]
         self.pz_res = pz[self.idx]
         self.px_res = px[self.idx]
@@ -372,24 +372,29 @@ class _Problem:
         )
 
     # ------------------------------------------------------------------ forward model
-    def chords(self, c, coat, sub=None, outer=None):
+    def chords(self, c, coat, sub=None, outer=None, body=None, centres=None):
         """Chords (t_o, t_c) at the needed pixel centres, and at sub-samples of the pixels near
         the outer or core silhouette (T is averaged there, where it has the square-root kink):
         8 x 8 within _FINE_PX, 4 x 4 up to _BAND_PX.  Returns (t_o, t_c, bands), bands a list
         of (pixel indices, sub-sample t_o, sub-sample t_c, sub-samples per pixel).  ``sub``
         (indices into the needed pixels): only those, with band indices local to ``sub``.
         ``outer``: (chords of this ``c`` for another layer thickness, the ``version`` they were
-        made on): their outer chords are taken as they are if the pixel map is still that one."""
+        made on): their outer chords are taken as they are if the pixel map is still that one.
+        ``body`` (the ``_Body`` of this ``c`` and ``coat``) and ``centres`` ((t_o, t_c) at the
+        needed pixel centres, from that body): a caller that has them already (the fringe
+        correction) passes them in; the numbers are the same."""
         if self.map_stale(c, coat):
             self.update_pixel_map(c, coat)
         if outer is not None:
             outer = outer[0] if outer[1] == self.version else None
-        x, z = self.curve(c)
-        body = _Body(x, z, coat)
+        if body is None:
+            body = _Body(*self.curve(c), coat)
         xc, zc, dist = self.nx_, self.nz_, self.dist_need
         if sub is not None:
             xc, zc, dist = xc[sub], zc[sub], dist[sub]
-        if outer is None:
+        if centres is not None and sub is None and outer is None:
+            t_o, t_c = centres
+        elif outer is None:
             t_o, t_c = body.chords(xc, zc)
         else:
             t_o = outer[0]
@@ -446,14 +451,37 @@ class _Problem:
         return np.column_stack([bt, bt * self.rn, bt * self.cn])
 
     def linear(self, B):
-        A = B * self.w[:, None]
-        return np.linalg.solve(A.T @ A, A.T @ (self.I * self.w))  # 3 x 3 normal equations
+        """Illumination (a, b_row, b_col) by weighted linear least squares (censored pixels left out)."""
+        w = self.w if self.cens is None else self.w * ~self.cens
+        A = B * w[:, None]
+        return np.linalg.solve(A.T @ A, A.T @ (self.I * w))  # 3 x 3 normal equations
+
+    def model(self, B, lin):
+        """Image model at the residual pixels, B @ lin; at a censored pixel it is held at the value
+        read wherever it is above it (the residual is then 0: the image is at least that)."""
+        M = B @ lin
+        return M if self.cens is None else np.where(self.cens, np.minimum(M, self.I), M)
+
+    def active(self, M):
+        """Weights of the linear parameters' Jacobian columns at the model ``M`` (``model``): 0 at
+        the censored pixels whose model is above their value, else 1 (None: all 1)."""
+        return None if self.cens is None else (~self.cens | (M < self.I)).astype(float)
 
     def set_weights(self, model):
         """Poisson weights 1/sd with sd = noise x sqrt(model / background) (flattened image)."""
         m = np.clip(model, 0.05, None)
         self.w = 1.0 / (self.noise * np.sqrt(m))
         self.version = getattr(self, "version", 0) + 1
+
+
+def _censored_at(censored, rect, idx):
+    """The censored residual pixels (a saturated detector: the image is at least the value read
+    there; bool at the flat indices ``idx`` of the rectangle ``rect`` of ``censored``), or None if
+    none of them is."""
+    if censored is None:
+        return None
+    cens = np.asarray(censored, bool)[rect].ravel()[idx]
+    return cens if cens.any() else None
 
 
 def _gauss_kernel(sigma, truncate=4.0):

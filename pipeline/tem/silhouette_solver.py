@@ -86,7 +86,7 @@ class _Fitter:
         T = self.p.transmission(ch, k_o, k_c)
         B = self.p.blurred(T, sigma)
         lin = self.p.linear(B)
-        res = (self.p.I - B @ lin) * self.p.w
+        res = (self.p.I - self.p.model(B, lin)) * self.p.w
         pr, _ = self.penalty(c)
         st = _State(v, float(res @ res + pr @ pr), ch, T, B, lin, res, self.p.version)
         if self._cache_version != self.p.version:  # the map was updated for v
@@ -107,10 +107,10 @@ class _Fitter:
         layer thickness, 0.15 px, misstates it by ~50 on a coated flat face)."""
         p = self.p
         c, sigma, k_o, k_c, coat = self.unpack(st.v)
-        M0 = st.B @ st.lin
+        M0 = p.model(st.B, st.lin)
 
         def col(B):
-            return -(B @ st.lin - M0) * p.w
+            return -(p.model(B, st.lin) - M0) * p.w
 
         G = None
         if with_shape:
@@ -137,7 +137,8 @@ class _Fitter:
             cols = [(col(m(e)) - col(m(-e))) / (2 * e) for m in models]
         else:
             cols = [col(m(0.02)) / 0.02 for m in models]
-        Jo = np.column_stack(cols + [-st.B * p.w[:, None]])
+        act = p.active(M0)
+        Jo = np.column_stack(cols + [-st.B * (p.w if act is None else p.w * act)[:, None]])
         return G, Jo, names + ["lin_a", "lin_row", "lin_col"]
 
     def height_bands(self, c, coat):
@@ -180,7 +181,7 @@ class _Fitter:
         p.update_pixel_map(c, coat, cold=True)
         st = self.evaluate(st.v)
         _, Jo, names = self.jacobian(st, with_shape=False, central=True)
-        M0 = st.B @ st.lin
+        M0 = p.model(st.B, st.lin)
         lo0, hi0 = self.height_bands(c, coat)
         pad = 3.0 * sigma + 1.5  # sub-samples and blur (its tail beyond 3 sigma: ~1 %)
         lo, hi = lo0 - pad, hi0 + pad
@@ -210,7 +211,7 @@ class _Fitter:
             T = st.T.copy()
             T[sub] = p.transmission(p.chords(v[:K], coat, sub), k_o, k_c)
             B = p.blurred(T, sigma)
-            d = -(B @ st.lin - M0) * p.w / eps
+            d = -(p.model(B, st.lin) - M0) * p.w / eps
             # bands of one group are disjoint and sorted: the knot whose band holds each pixel
             j = np.searchsorted(lo[ks], zr, side="right") - 1
             ok = (j >= 0) & (zr <= hi[ks[np.clip(j, 0, None)]])

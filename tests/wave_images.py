@@ -1,0 +1,27 @@
+"""Images of the INDEPENDENT wave-optical simulator (``pipeline.synth.tem_wave``) shared by the TEM
+tests: a clean tip, so that what a test varies is what it names."""
+
+from __future__ import annotations
+
+
+def clean_tip(seed, layer, pixel_size, side, **kw):
+    """A wave-simulator image of a clean tip (no particles, in focus, SNR 20, 16 bit, R 12 nm; ``kw``
+    overrides or adds ``draw_params`` fields): (TemImage, truth, params)."""
+    from pipeline.synth.tem_wave import draw_params, simulate
+    from pipeline.tem.reading import TemImage
+
+    fields = dict(
+        layer=layer,
+        apex_particles=False,
+        shank_contamination=False,
+        defocus=0.0,
+        pixel_size=pixel_size,
+        snr=20.0,
+        bits=16,
+        shape=(side, side),
+        R=12e-9,
+    )
+    fields.update(kw)
+    p = draw_params(seed, **fields)
+    img, truth = simulate(p)
+    return TemImage(img.astype(float), p.pixel_size, "synthetic"), truth, p
