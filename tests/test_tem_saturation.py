@@ -46,10 +46,74 @@ def test_clipped_plateau_is_found_and_the_noise_read_beside_it():
     assert plain < 0.1 * noise  # read on the plateau, the noise vanishes: what the fit had before
 
 
+def test_a_quantised_noise_tail_is_not_a_plateau():
+    """An 8-bit vacuum at 0.7 x full scale with 0.5 DN of noise holds its maximum grey level in ~1 %
+    of the pixels, but fewer than at the level below: not clipped (it was taken for saturation by
+    the fraction alone).  The same vacuum at 1.02 x full scale is."""
+    from pipeline.tem.edges import saturated_pixels
+
+    rng = np.random.default_rng(0)
+    cols = np.arange(300)[None, :]
+    level = np.where(cols < 120, 0.3, 1.0) * np.ones((300, 1))
+    for vac, clipped in ((0.7, False), (1.02, True)):
+        img = np.clip(np.round(255 * vac * level + 0.5 * np.sqrt(level) * rng.standard_normal((300, 300))), 0, 255)
+        assert (saturated_pixels(img) is not None) is clipped, vac
+
+
+def test_noise_beside_a_nearly_opaque_tip():
+    """A clipped vacuum (1.3 x full scale) and a tip transmitting 0-3 %: what is neither clipped nor
+    dark lies on the edge.  The noise is still read within 1.4x (pair differences there read the
+    edge's slope, 10-28x too high)."""
+    from scipy import ndimage
+
+    from pipeline.tem.edges import flatten_background, saturated_pixels
+
+    rng = np.random.default_rng(7)
+    R, C = np.mgrid[0:200, 0:200].astype(float)
+    inside = R < 150 - (C - 100) ** 2 / 60
+    for core in (0.0, 0.03):
+        for blur in (1.0, 2.0):
+            lv = ndimage.gaussian_filter(np.where(inside, 1.3 * core, 1.3), blur)
+            img = np.clip(np.round(255 * (lv + 0.02 * np.sqrt(lv) * rng.standard_normal(lv.shape))), 0, 255)
+            _, est = flatten_background(img, saturated_pixels(img))
+            assert 0.7 < est / 0.02 < 1.4, (core, blur, est)
+
+
+def test_illumination_minimises_the_censored_residual():
+    """``_Problem.linear`` with censored pixels: the censored residual (value - model where the model is
+    below a censored value, 0 above) is at its minimum over the illumination (no perturbation of it
+    lowers the sum of squares), and ``n_data`` counts every pixel but the censored ones above."""
+    from types import SimpleNamespace
+
+    from pipeline.tem.silhouette_model import _Problem
+
+    rng = np.random.default_rng(2)
+    n = 4000
+    B = np.column_stack([rng.uniform(0.3, 1.0, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)])
+    B[:, 1:] *= B[:, :1]
+    truth = np.array([1.15, 0.05, -0.03])
+    I = B @ truth + 0.01 * rng.standard_normal(n)
+    cens = I >= 1.0
+    I = np.minimum(I, 1.0)
+    p = SimpleNamespace(w=np.full(n, 100.0), I=I, cens=cens, idx=np.arange(n))
+    lin = _Problem.linear(p, B)
+
+    def cost(v):
+        r = (I - _Problem.model(p, B, v)) * p.w
+        return float(r @ r)
+
+    c0 = cost(lin)
+    for d in np.vstack([np.eye(3), -np.eye(3)]) * 1e-4:
+        assert cost(lin + d) >= c0 - 1e-9 * c0
+    assert np.allclose(lin, truth, atol=0.01)
+    assert _Problem.n_data(p, B, lin) == int(np.count_nonzero(~cens | (B @ lin < I)))
+
+
 def test_over_exposed_uncoated_tip_keeps_its_edge():
     """Vacuum 1.1 and 1.15 x full scale (46-58 % of the image clipped): the censored fit puts the edge
-    within 0.3 nm of the true silhouette (bias and RMS in the 6 nm window; the clipped pixels fitted
-    as data put it 0.13 and 1.18 nm inside), and the words say the detector saturated."""
+    within 0.35 nm of the true silhouette (bias, and RMS within 0.4 nm, in the 6 nm window; measured
+    -0.02 and +0.24 nm; the clipped pixels fitted as data put it 0.13 and 1.18 nm inside), and the
+    words say the detector saturated."""
     from pipeline.synth.tem_wave_truth import edge_errors
     from pipeline.tem.profiles import extract_profile
 
@@ -57,7 +121,7 @@ def test_over_exposed_uncoated_tip_keeps_its_edge():
         image, truth = _saturated_tip(seed, "none", bg)
         prof = extract_profile(image)
         e = edge_errors(prof.edge_px, truth, prof.z <= 6e-9)
-        assert abs(e["bias"]) < 0.3e-9 and e["rms"] < 0.35e-9, (seed, e)
+        assert abs(e["bias"]) < 0.35e-9 and e["rms"] < 0.4e-9, (seed, e)
         words = [f for f in prof.edge_model["global_flags"] if f.startswith("saturated detector")]
         assert words and "fitted as lower bounds" in words[0] and "vacuum beside the edge is clipped" in words[0]
 

@@ -212,9 +212,12 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
         starts.append(np.array([-(0.8 if A < 0 else 0.3) * np.sqrt(abs(A)), A, 0.0, ls0]))
     runs = [co.lm(q, START_STEPS) for q in starts]
     q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
-    J = co.jacobian(q)
+    r = co.residual(q)
+    J = co.jacobian(q, r)
     JTJ = J.T @ J  # at the solution
-    dof = max(1, prob.idx.size - 7)
+    # censored pixels whose model is above their value have residual exactly 0: not data
+    n_data = prob.idx.size if prob.cens is None else int(np.count_nonzero(~prob.cens | (r != 0)))
+    dof = max(1, n_data - 7)
     sd = _offset_sd(JTJ, max(cost / dof, 1.0))
     delta, A = float(q[0]), float(q[1])
     bound = MAX_SHIFT_PER_FRINGE * np.sqrt(abs(A)) + SHIFT_SLACK_PX

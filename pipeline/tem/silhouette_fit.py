@@ -184,7 +184,7 @@ def fit_silhouette(
     lim = _bounds(prob.K, k0, max_coat, fitter.coated)
     st, JTJ, names = fitter.polish(st, *lim)
     fringe = {}
-    if fringe_correction and float(st.res @ st.res) / max(1, prob.idx.size) > FRINGE_MIN_CHI2_RED:
+    if fringe_correction and float(st.res @ st.res) / max(1, prob.n_data(st.B, st.lin)) > FRINGE_MIN_CHI2_RED:
         fringe = fringe_offset(prob, fitter, st, pixel_size)
     prob.map_c = None
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
@@ -320,7 +320,7 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
         flags.append(words)
         cov_c = cov_c + sd_px**2 * np.ones((K, K))
     pts, nrm, basis = _outer_silhouette(prob, c, hpx)
-    rms = float(np.sqrt(np.mean((st.res / prob.w) ** 2)))
+    rms = float(np.sqrt(np.sum((st.res / prob.w) ** 2) / max(1, prob.n_data(st.B, st.lin))))
     return GlobalFit(
         pts,
         nrm,
@@ -356,7 +356,7 @@ def _covariances(prob, fitter, st, JTJ, names, coat_test, pixel_size):
     """chi^2 per degree of freedom, the standard errors of the non-edge parameters, the edge
     offsets' covariance (widened where the coating is ambiguous) and the flags."""
     K = prob.K
-    dof = max(1, prob.idx.size - len(names))
+    dof = max(1, prob.n_data(st.B, st.lin) - len(names))
     chi2 = float(st.res @ st.res) / dof
     flags, stderr = [], {}
     try:

@@ -26,6 +26,7 @@ _FINE_PX, _BAND_PX = 1.0, 2.0
 # images; n moved by > 1e-6 / > 0.1): fitted window x (1 + 1e-12) 81 / 31 with the threshold
 # at 0.6, 12 / 2 at 0.5; core table x (1 + 1e-13) 13 / 5, then 1 (by 6e-5) / 0.
 MAP_REFRESH_PX = 0.5
+LINEAR_ACTIVE_SET_ITERS = 5  # solves of the illumination with censored pixels (``_Problem.linear``)
 
 
 def _sub_offsets(m):
@@ -451,10 +452,30 @@ class _Problem:
         return np.column_stack([bt, bt * self.rn, bt * self.cn])
 
     def linear(self, B):
-        """Illumination (a, b_row, b_col) by weighted linear least squares (censored pixels left out)."""
-        w = self.w if self.cens is None else self.w * ~self.cens
-        A = B * w[:, None]
-        return np.linalg.solve(A.T @ A, A.T @ (self.I * w))  # 3 x 3 normal equations
+        """Illumination (a, b_row, b_col) by weighted linear least squares (3 x 3 normal equations).
+        With censored pixels, the minimum of the censored residual (``model``): first without them,
+        then with those the model leaves below their value, as data at that value, until that set
+        stops changing (at most ``LINEAR_ACTIVE_SET_ITERS`` solves)."""
+        if self.cens is None:
+            A = B * self.w[:, None]
+            return np.linalg.solve(A.T @ A, A.T @ (self.I * self.w))
+        use = ~self.cens
+        for _ in range(LINEAR_ACTIVE_SET_ITERS):
+            w = self.w * use
+            A = B * w[:, None]
+            lin = np.linalg.solve(A.T @ A, A.T @ (self.I * w))
+            now = ~self.cens | (B @ lin < self.I)
+            if np.array_equal(now, use):
+                break
+            use = now
+        return lin
+
+    def n_data(self, B, lin):
+        """Residual pixels that count at (B, lin): all but the censored ones whose model is above
+        their value (those say nothing more and have residual 0: not degrees of freedom)."""
+        if self.cens is None:
+            return int(self.idx.size)
+        return int(np.count_nonzero(~self.cens | (B @ lin < self.I)))
 
     def model(self, B, lin):
         """Image model at the residual pixels, B @ lin; at a censored pixel it is held at the value
