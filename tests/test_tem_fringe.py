@@ -114,3 +114,40 @@ def test_offset_error_is_finite_where_the_phase_is_not_determined():
     assert _offset_sd(JTJ, 2.0) == pytest.approx(expect, rel=1e-12)
     J[:, 0] = 0.0
     assert np.isnan(_offset_sd(J.T @ J, 2.0))
+
+
+def _knife_edge(x, A, tau, x0):
+    """Closed-form intensity of a half-plane of transmission ``tau`` (x < x0; vacuum beyond)
+    propagated with the kernel exp(i pi A f^2) (f cycles/px): the field of the open half
+    (1 + i)/2 [(C(w) + 1/2) - i (S(w) + 1/2)], w = (x - x0) sqrt(2 / A), Fresnel integrals C, S;
+    its complex conjugate for A < 0."""
+    from scipy.special import fresnel
+
+    S, C = fresnel((x - x0) * np.sqrt(2.0 / abs(A)))
+    U = (1 + 1j) / 2 * ((C + 0.5) - 1j * (S + 0.5))
+    U = U if A > 0 else np.conj(U)
+    return np.abs(tau + (1 - tau) * U) ** 2
+
+
+@pytest.mark.parametrize("sigma", [0.3, 0.6])
+@pytest.mark.parametrize("A", [-60.0, -20.0, -5.0, -2.0, 2.0, 5.0, 20.0, 60.0])
+def test_edge_profile_model_is_the_fresnel_knife_edge(A, sigma):
+    """The 1-D model that screens the starts (``_profile_model``) against the closed-form Fresnel
+    knife edge of a slab with absorption and phase (amplitude e^-0.5, phase 1 rad), both blurred by
+    the same Gaussian (the closed form on a 1/64 px grid), where the fringes are resolved (|x| <= |A|
+    px: local fringe frequency <= 1 cycle/px).  Measured: within 0.008; the other sign of the
+    defocus differs by 0.18-0.49, so the test sees a sign error."""
+    from scipy.ndimage import gaussian_filter1d
+
+    from pipeline.tem.fringe_correction import _profile_model
+
+    d = np.arange(-30.0, 30.0 + 1e-9, 0.25)  # bins (px, outward +); the 1-D model samples 4 / px
+    kt, t_o = np.where(d <= 0, 1.0, 0.0), np.where(d <= 0, 10.0, 0.0)
+    tau = np.exp(-0.5 + 1j * 0.1 * 10.0)
+    xf = np.arange(-80.0, 80.0, 1.0 / 64)
+    sel = np.abs(d) <= min(20.0, abs(A))
+    for delta in (0.0, 1.0):
+        model = _profile_model(np.array([delta, A, 0.0, 0.0]), d, kt, t_o, 0.1, sigma)
+        # the sampled edge lies between the samples at 0 and 0.25 px (+ delta)
+        ref = np.interp(d, xf, gaussian_filter1d(_knife_edge(xf, A, tau, 0.125 + delta), sigma * 64))
+        assert np.max(np.abs(model - ref)[sel]) < 0.015
