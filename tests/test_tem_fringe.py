@@ -151,3 +151,29 @@ def test_edge_profile_model_is_the_fresnel_knife_edge(A, sigma):
         # the sampled edge lies between the samples at 0 and 0.25 px (+ delta)
         ref = np.interp(d, xf, gaussian_filter1d(_knife_edge(xf, A, tau, 0.125 + delta), sigma * 64))
         assert np.max(np.abs(model - ref)[sel]) < 0.015
+
+
+def test_coherent_model_is_a_function_of_its_parameters(monkeypatch):
+    """The coherent model at an offset is the same whatever offsets were evaluated before: its
+    supersampled pixels come from the fitted curve's own map (``_Problem.offset_map``).  A map
+    refreshed along the optimiser's path (at 1.2 px, then kept for 1.6 px) made the model, so the
+    fitted offset, depend on the path (grid image 106 moved n by 1.79 under a 1e-12 change of the
+    image)."""
+    import pipeline.tem.silhouette_fit as sf
+    from pipeline.tem.fringe_correction import _Coherent
+
+    captured = {}
+    original = sf.fringe_offset
+
+    def grab(prob, fitter, st, pixel_size, **kw):
+        captured["args"] = (prob, fitter, st, pixel_size)
+        return original(prob, fitter, st, pixel_size, **kw)
+
+    monkeypatch.setattr(sf, "fringe_offset", grab)
+    _profile(-1.5e-6)
+    q = np.array([1.6, -30.0, 0.0, 0.0])
+    fresh = _Coherent(*captured["args"]).residual(q)
+    co = _Coherent(*captured["args"])
+    for delta in (-6.0, 3.0, 1.2):
+        co.residual(np.array([delta, -30.0, 0.0, 0.0]))
+    assert np.array_equal(co.residual(q), fresh)

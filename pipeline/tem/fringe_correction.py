@@ -82,6 +82,11 @@ class _Coherent:
         self._waves = {}  # (delta, eta) -> exit wave (complex64) and |psi|^2 at the needed pixels
         self._spectra = {}  # (delta, eta, padding) -> FFT of the padded exit wave (A's column reuses it)
         self._fringes = {}  # (delta, A, eta) -> dI at the needed pixels (the blur's column reuses it)
+        # the pixel map of the fitted curve, made from it alone, and its signed distances: every
+        # offset's map is derived from them (``_Problem.offset_map``), whatever was evaluated before
+        prob.update_pixel_map(self.c, self.coat, cold=True)
+        t_need = _Body(*prob.curve(self.c), self.coat).chords(prob.nx_, prob.nz_, core=False)[0]
+        self.sd0 = np.where(t_need > 0, -prob.dist_need, prob.dist_need)
 
     def fields(self, delta):
         """(t_outer, t_core at every rectangle pixel centre, sub-sampled T at the needed pixels,
@@ -91,6 +96,7 @@ class _Coherent:
         key = float(delta)
         if key not in self._fields:
             c = self.c + delta
+            self.p.offset_map(self.c, self.coat, delta, self.sd0)
             body = _Body(*self.p.curve(c), self.coat)
             t_o, t_c = body.chords(self.px, self.pz)
             need = self.p.need
@@ -216,7 +222,7 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
         A = fa * a_max
         # the fringe shifts the transmission edge outwards by up to ~sqrt(|A|) (more in overfocus)
         starts.append(np.array([-(0.8 if A < 0 else 0.3) * np.sqrt(abs(A)), A, 0.0, ls0]))
-    runs = [co.lm(q, START_STEPS) for q in _screened_starts(prob, fitter, st, co, starts, a_max)]
+    runs = [co.lm(q, START_STEPS) for q in _screened_starts(prob, st, co, starts, a_max)]
     q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
     r = co.residual(q)
     J = co.jacobian(q, r)
@@ -238,7 +244,7 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
     )
 
 
-def _screened_starts(prob, fitter, st, co, starts, a_max):
+def _screened_starts(prob, st, co, starts, a_max):
     """The ``SCREEN_KEEP`` starts of the 2-D fit, from the Beer-Lambert state (``starts[0]``, A = 0)
     and the optimum of every start in a fit of the arc-averaged edge profile (``_edge_profile``,
     ``_profile_model``: a 1-D FFT, cheap), ranked by their chi^2 in 2-D (one ``residual`` each).
@@ -249,7 +255,7 @@ def _screened_starts(prob, fitter, st, co, starts, a_max):
     once (``_distinct``).  Measured on the 65 grid images where the correction runs
     (``bench_tem_independent``), against three LM steps from every start: the final chi^2 lower by
     > 1 % on 19, higher by > 1 % on 10."""
-    d, y, kt, t_o, sd = _edge_profile(prob, fitter, st)
+    d, y, kt, t_o, sd = _edge_profile(prob, co, st)
     lo = np.array([-40.0, -2.0 * a_max - 5.0, np.log(PHASE_RANGE[0]), -3.0])
     hi = np.array([40.0, 2.0 * a_max + 5.0, np.log(PHASE_RANGE[1]), 3.0])
 
@@ -272,15 +278,13 @@ def _distinct(q1, q2):
     return bool(abs(q1[0] - q2[0]) > 0.25 or abs(q1[1] - q2[1]) > 1.0 + 0.05 * max(abs(q1[1]), abs(q2[1])))
 
 
-def _edge_profile(prob, fitter, st, step=0.25):
+def _edge_profile(prob, co, st, step=0.25):
     """The fitted pixels averaged along the edge in bins of signed distance to the fitted outer curve
-    (px, outward +): (distances, image / illumination, mean attenuation x chord, mean outer chord,
-    standard error of each bin's mean).  Censored pixels are left out."""
-    c, sigma, k_o, k_c, coat = fitter.unpack(st.v)
-    prob.update_pixel_map(c, coat, cold=True)
+    (px, outward +; ``co.sd0``): (distances, image / illumination, mean attenuation x chord, mean
+    outer chord, standard error of each bin's mean).  Censored pixels are left out."""
+    c, k_o, k_c, coat = co.c, co.k_o, co.k_c, co.coat
     t_o, t_c = _Body(*prob.curve(c), coat).chords(prob.px_res, prob.pz_res)
-    dist = prob.dist_need[prob.res_in_need]
-    sd = np.where(t_o > 0, -dist, dist)
+    sd = co.sd0[prob.res_in_need]
     illum = st.lin[0] + st.lin[1] * prob.rn + st.lin[2] * prob.cn
     use = np.isfinite(sd) & (illum > 0) & (True if prob.cens is None else ~prob.cens)
     sd, illum, t_o, t_c = sd[use], illum[use], t_o[use], t_c[use]

@@ -364,6 +364,18 @@ class _Problem:
         self.map_c, self.map_coat = c.copy(), float(coat)
         self.version = getattr(self, "version", 0) + 1
 
+    def offset_map(self, c, coat, delta, sd0):
+        """Make the pixel map that of the curve ``c`` moved by a uniform ``delta`` (px, outward +;
+        the curve of c + delta), derived from ``sd0``, the needed pixels' signed distances (px,
+        inside -) in the map of ``c`` itself: each pixel keeps its nearest point, its distance
+        becomes |sd0 - delta_q|, delta_q = delta rounded to MAP_REFRESH_PX, so the supersampled
+        bands stay fixed within each such step as between the fit's own refreshes.  A function of
+        (c, coat, delta) alone; a refresh of the map along an optimiser's path would make the model
+        depend on the path (the defocus-fringe correction moves the edge by up to 10 px)."""
+        dq = MAP_REFRESH_PX * np.round(delta / MAP_REFRESH_PX)
+        self.dist_need = np.abs(sd0 - dq)
+        self.map_c, self.map_coat = c + delta, float(coat)
+
     def map_stale(self, c, coat):
         # B-splines are >= 0 and sum to 1: no curve point moved more than max |dc|
         return (
