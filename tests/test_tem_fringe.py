@@ -130,13 +130,14 @@ def _knife_edge(x, A, tau, x0):
 
 
 @pytest.mark.parametrize("sigma", [0.3, 0.6])
-@pytest.mark.parametrize("A", [-60.0, -20.0, -5.0, -2.0, 2.0, 5.0, 20.0, 60.0])
+@pytest.mark.parametrize("A", [-150.0, -60.0, -20.0, -5.0, -2.0, 2.0, 5.0, 20.0, 60.0, 150.0])
 def test_edge_profile_model_is_the_fresnel_knife_edge(A, sigma):
     """The 1-D model that screens the starts (``_profile_model``) against the closed-form Fresnel
     knife edge of a slab with absorption and phase (amplitude e^-0.5, phase 1 rad), both blurred by
     the same Gaussian (the closed form on a 1/64 px grid), where the fringes are resolved (|x| <= |A|
     px: local fringe frequency <= 1 cycle/px).  Measured: within 0.008; the other sign of the
-    defocus differs by 0.18-0.49, so the test sees a sign error."""
+    defocus differs by 0.18-0.49, so the test sees a sign error.  |A| = 150 px^2 (2 um at 0.2 nm px)
+    needs the model's padding to grow with |A| (a fixed 64 px was 0.13 off at 138 px^2)."""
     from scipy.ndimage import gaussian_filter1d
 
     from pipeline.tem.fringe_correction import _profile_model
@@ -153,14 +154,11 @@ def test_edge_profile_model_is_the_fresnel_knife_edge(A, sigma):
         assert np.max(np.abs(model - ref)[sel]) < 0.015
 
 
-def test_coherent_model_is_a_function_of_its_parameters(monkeypatch):
-    """The coherent model at an offset is the same whatever offsets were evaluated before: its
-    supersampled pixels come from the fitted curve's own map (``_Problem.offset_map``).  A map
-    refreshed along the optimiser's path (at 1.2 px, then kept for 1.6 px) made the model, so the
-    fitted offset, depend on the path (grid image 106 moved n by 1.79 under a 1e-12 change of the
-    image)."""
+@pytest.fixture(scope="module")
+def fitted_problem():
+    """(prob, fitter, st, pixel_size) as ``fringe_offset`` receives them on the defocused test image
+    (its vacuum is clipped: about half of the fitted pixels are censored)."""
     import pipeline.tem.silhouette_fit as sf
-    from pipeline.tem.fringe_correction import _Coherent
 
     captured = {}
     original = sf.fringe_offset
@@ -169,11 +167,46 @@ def test_coherent_model_is_a_function_of_its_parameters(monkeypatch):
         captured["args"] = (prob, fitter, st, pixel_size)
         return original(prob, fitter, st, pixel_size, **kw)
 
-    monkeypatch.setattr(sf, "fringe_offset", grab)
-    _profile(-1.5e-6)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(sf, "fringe_offset", grab)
+        _profile(-1.5e-6)
+    return captured["args"]
+
+
+def test_coherent_model_is_a_function_of_its_parameters(fitted_problem):
+    """The coherent model at an offset is the same whatever offsets were evaluated before: its
+    supersampled pixels come from the fitted curve's own map (``_Problem.offset_map``).  A map
+    refreshed along the optimiser's path (at 1.2 px, then kept for 1.6 px) made the model, so the
+    fitted offset, depend on the path (grid image 106 moved n by 1.79 under a 1e-12 change of the
+    image)."""
+    from pipeline.tem.fringe_correction import _Coherent
+
     q = np.array([1.6, -30.0, 0.0, 0.0])
-    fresh = _Coherent(*captured["args"]).residual(q)
-    co = _Coherent(*captured["args"])
+    fresh = _Coherent(*fitted_problem).residual(q)
+    co = _Coherent(*fitted_problem)
     for delta in (-6.0, 3.0, 1.2):
         co.residual(np.array([delta, -30.0, 0.0, 0.0]))
     assert np.array_equal(co.residual(q), fresh)
+
+
+def test_edge_profile_keeps_the_body_where_the_vacuum_is_clipped(fitted_problem):
+    """The 1-D screen's body profile comes from every fitted pixel (chords do not depend on the data),
+    its data from the unclipped ones only.  Built from the unclipped pixels alone, the body stopped
+    inside the material (the clipped vacuum beside the edge), and the 1-D model jumped every 0.25 px
+    of offset.  With too few bins of data, the screen ranks the starts themselves."""
+    import pipeline.tem.fringe_correction as fc
+    from pipeline.tem.fringe_correction import _Coherent, _edge_profile, _screened_starts
+
+    prob, fitter, st, px = fitted_problem
+    co = _Coherent(*fitted_problem)
+    dg, kt, t_o, dd, y, se = _edge_profile(prob, co, st)
+    assert dg.max() > 3.0 and kt[-1] == 0.0 and t_o[-1] == 0.0  # into the vacuum
+    assert kt[0] > 0.1  # and into the material (attenuation x chord 0.19 at the inner end)
+    assert dd.max() < 0.0  # the clipped vacuum gives no data
+    assert np.all(se > 0) and np.all(np.isfinite(y))
+    starts = [np.zeros(4), np.array([-5.0, -40.0, 0.0, 0.0]), np.array([-1.2, 16.0, 0.0, 0.0])]
+    with pytest.MonkeyPatch.context() as mp:  # as if too few bins held data
+        mp.setattr(fc, "SCREEN_MIN_BINS", 10**6)
+        assert _edge_profile(prob, co, st) is None
+        kept = _screened_starts(prob, st, co, starts, 66.0)
+    assert len(kept) == 2 and all(any(np.array_equal(k, q) for q in starts) for k in kept)

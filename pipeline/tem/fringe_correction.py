@@ -63,6 +63,7 @@ PAD_MIN_PX, PAD_MAX_PX = 16, 64  # FFT padding around the rectangle (px): the ke
 START_STEPS = 3  # LM steps from every screened start; the best is continued
 SCREEN_KEEP = 2  # starts taken into the 2-D fit after the 1-D screen (``_screened_starts``)
 SCREEN_NFEV = 40  # model evaluations of each start's 1-D fit
+SCREEN_MIN_BINS = 8  # bins of the edge profile with data needed for the 1-D screen
 _FD = np.array([0.05, 0.5, 0.05, 0.03])  # finite-difference steps of (delta, A, ln eta, ln s)
 
 
@@ -248,22 +249,28 @@ def _screened_starts(prob, st, co, starts, a_max):
     """The ``SCREEN_KEEP`` starts of the 2-D fit, from the Beer-Lambert state (``starts[0]``, A = 0)
     and the optimum of every start in a fit of the arc-averaged edge profile (``_edge_profile``,
     ``_profile_model``: a 1-D FFT, cheap), ranked by their chi^2 in 2-D (one ``residual`` each).
-    The 1-D fit finds the basin of the fringe pattern, but its own chi^2 does not rank the basins:
-    the arc average mixes the edge's directions and curvatures, and on the 1.5 um overfocus test
-    image (``tests/test_tem_fringe.py``) the best 1-D chi^2 lay at the wrong sign of the defocus,
-    the best 2-D one at the right sign.  Candidates that the 1-D fit took to one optimum count
-    once (``_distinct``).  Measured on the 65 grid images where the correction runs
-    (``bench_tem_independent``), against three LM steps from every start: the final chi^2 lower by
-    > 1 % on 19, higher by > 1 % on 10."""
-    d, y, kt, t_o, sd = _edge_profile(prob, co, st)
-    lo = np.array([-40.0, -2.0 * a_max - 5.0, np.log(PHASE_RANGE[0]), -3.0])
-    hi = np.array([40.0, 2.0 * a_max + 5.0, np.log(PHASE_RANGE[1]), 3.0])
+    The 1-D fit finds the basin of the fringe pattern; its own chi^2 is not trusted to rank the
+    basins (the arc average mixes the edge's directions and curvatures).  Candidates that the 1-D
+    fit took to one optimum count once (``_distinct``).  Where fewer than ``SCREEN_MIN_BINS`` bins of
+    the profile hold data (a saturated detector clips nearly all of it), the starts themselves are
+    ranked.  Measured on the 65 grid images where the correction runs (``bench_tem_independent``),
+    against three LM steps from every start: the final chi^2 lower by > 1 % on 19, higher by > 1 %
+    on 10."""
+    prof = _edge_profile(prob, co, st)
+    if prof is None:
+        candidates = list(starts)
+    else:
+        dg, kt, t_o, dd, y, se = prof
+        lo = np.array([-40.0, -2.0 * a_max - 5.0, np.log(PHASE_RANGE[0]), -3.0])
+        hi = np.array([40.0, 2.0 * a_max + 5.0, np.log(PHASE_RANGE[1]), 3.0])
 
-    def res(q):
-        return (_profile_model(q, d, kt, t_o, co.eta0, co.sigma) - y) / sd
+        def res(q):
+            return (_profile_model(q, dg, kt, t_o, co.eta0, co.sigma, at=dd) - y) / se
 
-    fits = [least_squares(res, np.clip(q, lo + 1e-9, hi - 1e-9), bounds=(lo, hi), max_nfev=SCREEN_NFEV) for q in starts]
-    candidates = [starts[0]] + [f.x for f in fits]
+        fits = [
+            least_squares(res, np.clip(q, lo + 1e-9, hi - 1e-9), bounds=(lo, hi), max_nfev=SCREEN_NFEV) for q in starts
+        ]
+        candidates = [starts[0]] + [f.x for f in fits]
     chi2 = [float(r @ r) for r in map(co.residual, candidates)]
     kept = []
     for j in np.argsort(chi2, kind="stable"):
@@ -279,35 +286,53 @@ def _distinct(q1, q2):
 
 
 def _edge_profile(prob, co, st, step=0.25):
-    """The fitted pixels averaged along the edge in bins of signed distance to the fitted outer curve
-    (px, outward +; ``co.sd0``): (distances, image / illumination, mean attenuation x chord, mean
-    outer chord, standard error of each bin's mean).  Censored pixels are left out."""
+    """The fitted pixels averaged along the edge in bins of ``step`` px of signed distance to the
+    fitted outer curve (px, outward +; ``co.sd0``): the body over every residual pixel (bin centres
+    dg, mean attenuation x chord kt, mean outer chord t_o: the chords do not depend on the data, so
+    a clipped vacuum does not cut the body short) and the data over the uncensored ones (bin centres
+    dd of the bins with >= 5 of them, image / illumination y, standard error se of each bin's mean).
+    None where fewer than ``SCREEN_MIN_BINS`` bins hold data."""
     c, k_o, k_c, coat = co.c, co.k_o, co.k_c, co.coat
     t_o, t_c = _Body(*prob.curve(c), coat).chords(prob.px_res, prob.pz_res)
     sd = co.sd0[prob.res_in_need]
     illum = st.lin[0] + st.lin[1] * prob.rn + st.lin[2] * prob.cn
-    use = np.isfinite(sd) & (illum > 0) & (True if prob.cens is None else ~prob.cens)
-    sd, illum, t_o, t_c = sd[use], illum[use], t_o[use], t_c[use]
-    y, var = prob.I[use] / illum, 1.0 / (prob.w[use] * illum) ** 2
-    kt = k_o * t_o + (k_c - k_o) * t_c
-    b = np.floor((sd - sd.min()) / step).astype(np.intp)
-    n = np.bincount(b)
-    ok = n >= 5
-    mean = lambda v: np.bincount(b, v, n.size)[ok] / n[ok]  # noqa: E731
-    d = sd.min() + step * (np.nonzero(ok)[0] + 0.5)
-    return d, mean(y), mean(kt), mean(t_o), np.sqrt(np.bincount(b, var, n.size)[ok]) / n[ok]
+    geo = np.isfinite(sd) & (illum > 0)
+    illum = np.where(geo, illum, 1.0)
+    if np.count_nonzero(geo) < 5 * SCREEN_MIN_BINS:
+        return None
+    b = np.full(sd.size, -1, np.intp)
+    b[geo] = np.floor((sd[geo] - sd[geo].min()) / step).astype(np.intp)
+    centres = sd[geo].min() + step * (np.arange(b.max() + 1) + 0.5)
+
+    def means(sel, values, min_count):
+        n = np.bincount(b[sel], minlength=centres.size)
+        ok = n >= min_count
+        return ok, [np.bincount(b[sel], v[sel], centres.size)[ok] / n[ok] for v in values]
+
+    ok_g, (kt, t_o) = means(geo, (k_o * t_o + (k_c - k_o) * t_c, t_o), 1)
+    data = geo if prob.cens is None else geo & ~prob.cens
+    ok_d, (y, var) = means(data, (prob.I / illum, 1.0 / (prob.w * illum) ** 2), 5)
+    if np.count_nonzero(ok_d) < SCREEN_MIN_BINS:
+        return None
+    se = np.sqrt(var / np.bincount(b[data], minlength=centres.size)[ok_d])
+    return centres[ok_g], kt, t_o, centres[ok_d], y, se
 
 
-def _profile_model(q, d, kt, t_o, eta0, sigma, fine=4, pad=64.0):
+def _profile_model(q, d, kt, t_o, eta0, sigma, at=None, fine=4):
     """The coherent image of the arc-averaged edge (``_edge_profile``) at q = (delta, A, ln(eta /
-    eta0), ln(s / sigma)) (``_Coherent.residual``'s parameters): the mean chord profile moved out by
-    delta, its exit wave propagated across the edge in 1-D, blurred, at the bins ``d``."""
+    eta0), ln(s / sigma)) (``_Coherent.residual``'s parameters): the mean chord profile (kt, t_o at
+    the bins ``d``) moved out by delta, its exit wave propagated across the edge in 1-D on a grid of
+    ``fine`` samples per px, blurred, at the points ``at`` (default ``d``).  The grid is padded by
+    2 |A| + 16 px (at least 64): the kernel spreads the grid's top frequency, 2 cycles/px, over
+    2 |A| px, and a shorter padding wraps it round onto the edge."""
     delta, A, leta, lsig = q
-    g = np.arange(d.min() - pad, d.max() + pad, 1.0 / fine)
+    at = d if at is None else at
+    pad = max(64.0, 2.0 * abs(A) + 16.0)
+    g = np.arange(min(d.min(), at.min()) - pad, max(d.max(), at.max()) + pad, 1.0 / fine)
     psi = np.exp(
         -0.5 * np.interp(g - delta, d, kt, right=0.0)
         + 1j * eta0 * np.exp(leta) * np.interp(g - delta, d, t_o, right=0.0)
     )
     f = np.fft.fftfreq(g.size, d=1.0 / fine)
     image = np.abs(np.fft.ifft(np.fft.fft(psi) * np.exp(1j * np.pi * A * f**2))) ** 2
-    return np.interp(d, g, ndimage.gaussian_filter1d(image, sigma * np.exp(lsig) * fine))
+    return np.interp(at, g, ndimage.gaussian_filter1d(image, sigma * np.exp(lsig) * fine))

@@ -371,10 +371,16 @@ class _Problem:
         becomes |sd0 - delta_q|, delta_q = delta rounded to MAP_REFRESH_PX, so the supersampled
         bands stay fixed within each such step as between the fit's own refreshes.  A function of
         (c, coat, delta) alone; a refresh of the map along an optimiser's path would make the model
-        depend on the path (the defocus-fringe correction moves the edge by up to 10 px)."""
+        depend on the path (the defocus-fringe correction moves the edge by up to 10 px).  The
+        offset moves the curve along the reference normals, which differ from the fitted curve's
+        by up to ~25 deg, so the distances are approximate: against a map made afresh for the moved
+        curve, within 0.15 px at |delta| = 1 px and 0.3-1.3 px at 4-10 px near the curve (it only
+        chooses which pixels are sub-sampled; the chords are exact; measured on two test tips, the
+        fitted offset moved by <= 0.013 px, 0.3 of its standard error)."""
         dq = MAP_REFRESH_PX * np.round(delta / MAP_REFRESH_PX)
         self.dist_need = np.abs(sd0 - dq)
         self.map_c, self.map_coat = c + delta, float(coat)
+        self.version = getattr(self, "version", 0) + 1
 
     def map_stale(self, c, coat):
         # B-splines are >= 0 and sum to 1: no curve point moved more than max |dc|
