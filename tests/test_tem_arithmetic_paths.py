@@ -77,24 +77,12 @@ def fit_cases() -> dict:
 def _fringe_case() -> dict:
     """The defocused image of ``test_tem_fringe`` (independent wave-optical simulator): the fitted
     edge offset and defocus of its fringe correction (screened starts, LM on finite differences)."""
-    from pipeline.synth.tem_wave import draw_params, simulate
-    from pipeline.tem.profiles import extract_profile
-    from pipeline.tem.reading import TemImage
+    from wave_images import clean_tip
 
-    p = draw_params(
-        3,
-        layer="none",
-        apex_particles=False,
-        shank_contamination=False,
-        defocus=-1.5e-6,
-        pixel_size=0.3e-9,
-        snr=20.0,
-        bits=16,
-        shape=(320, 320),
-        R=12e-9,
-    )
-    img, _ = simulate(p)
-    fr = extract_profile(TemImage(img.astype(float), p.pixel_size, "synthetic")).edge_model["global_fringe"]
+    from pipeline.tem.profiles import extract_profile
+
+    image, _, _ = clean_tip(3, "none", 0.3e-9, 320, defocus=-1.5e-6)
+    fr = extract_profile(image).edge_model["global_fringe"]
     return {"offset_px": float(fr["offset_px"]), "A_px2": float(fr["A_px2"]), "applied": bool(fr["applied"])}
 
 
