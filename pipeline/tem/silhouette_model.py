@@ -549,11 +549,15 @@ def _blur_tiles(idx, shape, rows=64, gap=48):
 
 
 def _axis_attenuation(img, frame, curve, background=1.0):
-    """k (1/px) from the transmission on the axis 6-30 px above the apex (blur-free zone)."""
+    """k (1/px) from the transmission on the axis 6-30 px above the apex (blur-free zone).  The rows
+    are chosen by index (6 and 30 px lie on the table's grid: compared as heights, the row at 6 px
+    read 6.0 or 6.000000000000002 by the rounding of the axis angle, was in or out of the median,
+    and the fit started from another k on each arithmetic path)."""
     S, x, z, _, _ = curve
     body = _Body(x, z, 0.0)
     zg = body.zg
-    ok = (body.rho > 5) & (zg - zg[0] > 6) & (zg - zg[0] < 30)
+    rows = np.arange(zg.size)
+    ok = (body.rho > 5) & (rows > np.floor(6.0 / body.dz + 0.5)) & (rows < np.floor(30.0 / body.dz + 0.5))
     if ok.sum() < 5:
         return float("nan")
     pts = frame.to_image(body.cen[ok], zg[ok])
