@@ -86,8 +86,8 @@ class _Coherent:
         # the pixel map of the fitted curve, made from it alone, and its signed distances: every
         # offset's map is derived from them (``_Problem.offset_map``), whatever was evaluated before
         prob.update_pixel_map(self.c, self.coat, cold=True)
-        t_need = _Body(*prob.curve(self.c), self.coat).chords(prob.nx_, prob.nz_, core=False)[0]
-        self.sd0 = np.where(t_need > 0, -prob.dist_need, prob.dist_need)
+        self.chords0 = _Body(*prob.curve(self.c), self.coat).chords(prob.nx_, prob.nz_)  # at the needed pixels
+        self.sd0 = np.where(self.chords0[0] > 0, -prob.dist_need, prob.dist_need)
 
     def fields(self, delta):
         """(t_outer, t_core at every rectangle pixel centre, sub-sampled T at the needed pixels,
@@ -292,8 +292,8 @@ def _edge_profile(prob, co, st, step=0.25):
     a clipped vacuum does not cut the body short) and the data over the uncensored ones (bin centres
     dd of the bins with >= 5 of them, image / illumination y, standard error se of each bin's mean).
     None where fewer than ``SCREEN_MIN_BINS`` bins hold data."""
-    c, k_o, k_c, coat = co.c, co.k_o, co.k_c, co.coat
-    t_o, t_c = _Body(*prob.curve(c), coat).chords(prob.px_res, prob.pz_res)
+    k_o, k_c = co.k_o, co.k_c
+    t_o, t_c = (t[prob.res_in_need] for t in co.chords0)
     sd = co.sd0[prob.res_in_need]
     illum = st.lin[0] + st.lin[1] * prob.rn + st.lin[2] * prob.cn
     geo = np.isfinite(sd) & (illum > 0)
