@@ -28,13 +28,13 @@ def small_tips():
     return [a, b]
 
 
-def snakemake(workdir: Path, *args):
+def snakemake(workdir: Path, *args, root=ROOT):
     cmd = [
         sys.executable,
         "-m",
         "snakemake",
         "-s",
-        str(ROOT / "Snakefile"),
+        str(root / "Snakefile"),
         "--directory",
         str(workdir),
         "--configfile",
@@ -123,8 +123,8 @@ def test_second_dry_run_has_nothing_to_do(finished_run):
     assert "Nothing to be done" in proc.stdout + proc.stderr
 
 
-def planned_commands(workdir):
-    proc = snakemake(workdir, "-n", "--printshellcmds")
+def planned_commands(workdir, root=ROOT):
+    proc = snakemake(workdir, "-n", "--printshellcmds", root=root)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out
     # dry-run lines read "Shell command: python -m pipeline <stage> ..."
@@ -153,6 +153,30 @@ def test_editing_one_tip_reruns_only_its_affected_stages(finished_run):
     finally:
         path.write_text(original)
     assert planned_commands(finished_run) == []
+
+
+def test_a_code_change_reruns_its_stage_and_what_follows_only(finished_run, tmp_path):
+    """An upgraded pipeline whose fit code changed reruns the fits and what follows them, not the
+    profiles or the forces (the rules' `code` param, pipeline.code_version); a comment reruns nothing.
+    The upgrade is a copy of the workflow and the package (Snakemake imports the package beside its
+    Snakefile), planned as a dry run on the finished results."""
+    upgrade = tmp_path / "upgrade"
+    upgrade.mkdir()
+    for part in ("Snakefile", "config", "workflow_rules", "pipeline"):
+        src = ROOT / part
+        if src.is_dir():
+            shutil.copytree(src, upgrade / part, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(src, upgrade / part)
+    module = upgrade / "pipeline" / "fits" / "power_law.py"  # imported by fits.stage via profile_fit
+    module.write_text(module.read_text() + "\n# a comment only\n")
+    assert planned_commands(finished_run, upgrade) == []
+    module.write_text(module.read_text() + "\n_UPGRADED = True\n")
+    planned = planned_commands(finished_run, upgrade)
+    stages = {line.split()[3] for line in planned}
+    assert stages == {"fit", "fit-figure", "inversion", "adhesion-range", "adhesion-figures", "summary"}, planned
+    assert sum(" fit " in line for line in planned) == 6  # every interval of both tips
+    assert planned_commands(finished_run) == []  # the installed code: nothing to do
 
 
 def test_editing_the_inversion_settings_reruns_every_inversion_and_what_follows(finished_run):

@@ -20,6 +20,7 @@ rule adhesion_range:
     conda:
         CONDA_ENV
     params:
+        code=RULE_CODE["adhesion_range"],
         tip=tip_yaml,
     shell:
         "python -m pipeline adhesion-range --tip-config {params.tip} --inversion-h5 {input.inversion}"
@@ -45,6 +46,8 @@ rule adhesion_figures:
         job_benchmark("{tip}/adhesion_figures")
     conda:
         CONDA_ENV
+    params:
+        code=RULE_CODE["adhesion_figures"],
     shell:
         "python -m pipeline adhesion-figures --tip {wildcards.tip} --range-h5 {input}"
         " --w-of-h-png {output.wa_h} --adhesion-map-png {output.amap} > {log} 2>&1"

@@ -7,6 +7,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 import pipeline.config as pc
+from pipeline.code_version import code_version
 from pipeline.workflow_support import config_file_for_jobs, use_this_interpreter_for_jobs
 
 # Validate everything before any job runs: our loader first (one clear line per problem,
@@ -77,6 +78,24 @@ def interval_cfg(wildcards):
 
 def tip_yaml(wildcards):
     return TIP_FILES[wildcards.tip]
+
+
+# The code of each job, a hash of its modules (pipeline.code_version).  Rules carry it as a `code`
+# param, so Snakemake's params trigger reruns a stage whose code changed (a pipeline upgrade) and what
+# follows it; a comment or a reformatting changes nothing.  `pipeline.config` (the YAML -> SI loader)
+# is part of every stage that reads a tip's YAML.
+RULE_MODULES = {
+    "profiles": ("pipeline.tem.stage", "pipeline.config"),
+    "fits": ("pipeline.fits.stage", "pipeline.config"),
+    "fits_figure": ("pipeline.fits.figures",),
+    "forces": ("pipeline.forces.stage", "pipeline.config"),
+    "inversion": ("pipeline.inversion.stage", "pipeline.config"),
+    "adhesion_range": ("pipeline.adhesion_range.stage", "pipeline.config"),
+    "adhesion_figures": ("pipeline.adhesion_range.figures",),
+    "summary": ("pipeline.adhesion_range.report",),
+    "rigid_laws_figure": ("pipeline.mechanics.figures",),
+}
+RULE_CODE = {name: code_version(*modules) for name, modules in RULE_MODULES.items()}
 
 
 # What each stage reads from a tip's YAML (after unit conversion), and the inversion from the

@@ -13,6 +13,7 @@ rule fits:
     conda:
         CONDA_ENV
     params:
+        code=RULE_CODE["fits"],
         tip=tip_yaml,
         settings=stage_settings("fits"),
     shell:
@@ -31,5 +32,7 @@ rule fits_figure:
         job_benchmark("{tip}/fits_figure")
     conda:
         CONDA_ENV
+    params:
+        code=RULE_CODE["fits_figure"],
     shell:
         "python -m pipeline fit-figure --out-png {output} {input} > {log} 2>&1"

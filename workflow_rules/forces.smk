@@ -17,6 +17,7 @@ rule forces:
     conda:
         CONDA_ENV
     params:
+        code=RULE_CODE["forces"],
         tip=tip_yaml,
         settings=stage_settings("forces"),
     shell:

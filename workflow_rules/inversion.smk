@@ -15,6 +15,7 @@ rule inversion:
     conda:
         CONDA_ENV
     params:
+        code=RULE_CODE["inversion"],
         tip=tip_yaml,
         settings=stage_settings("inversion"),
         workflow_config=WORKFLOW_CONFIG,

@@ -19,6 +19,7 @@ rule profiles:
     conda:
         CONDA_ENV
     params:
+        code=RULE_CODE["profiles"],
         tip=tip_yaml,
         settings=stage_settings("profiles"),
     shell:

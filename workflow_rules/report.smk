@@ -12,6 +12,8 @@ rule summary:
         job_benchmark("summary")
     conda:
         CONDA_ENV
+    params:
+        code=RULE_CODE["summary"],
     shell:
         "python -m pipeline summary --out-csv {output} {input} > {log} 2>&1"
 
@@ -25,5 +27,7 @@ rule rigid_laws_figure:
         job_benchmark("rigid_laws_figure")
     conda:
         CONDA_ENV
+    params:
+        code=RULE_CODE["rigid_laws_figure"],
     shell:
         "python -m pipeline rigid-laws-figure --out-png {output} > {log} 2>&1"
