@@ -343,6 +343,25 @@ def test_grader_on_the_true_silhouette():
     assert ideal_fit(truth).n == pytest.approx(p.n, abs=0.01)
 
 
+def test_common_offset_sd_of_the_edge_covariance():
+    """The grader's reported SD of the edge's mean offset: a common offset of SD s in the covariance
+    reads back as s (B-spline rows sum to 1); independent knots average down; no covariance, NaN."""
+    from types import SimpleNamespace
+
+    from pipeline.synth.tem_wave_truth import common_offset_sd
+
+    rng = np.random.default_rng(0)
+    basis = rng.random((50, 8))
+    basis /= basis.sum(axis=1, keepdims=True)
+    sel = np.arange(50) < 30
+    common = SimpleNamespace(offset_basis=basis, offset_cov=0.2e-9**2 * np.ones((8, 8)))
+    assert common_offset_sd(common, sel) == pytest.approx(0.2e-9, rel=1e-12)
+    indep = SimpleNamespace(offset_basis=basis, offset_cov=0.2e-9**2 * np.eye(8))
+    a = basis[sel].mean(axis=0)
+    assert common_offset_sd(indep, sel) == pytest.approx(0.2e-9 * np.sqrt(a @ a), rel=1e-12)
+    assert math.isnan(common_offset_sd(SimpleNamespace(), sel))
+
+
 def test_cli_writes_calibrated_images(tmp_path):
     from pipeline.tem.reading import read_tem_image
 

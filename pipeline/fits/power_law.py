@@ -7,6 +7,7 @@ import numpy as np
 from scipy import optimize
 
 from pipeline.fits.result import FitError, PowerLawFit
+from pipeline.tem.model_error import EDGE_SYSTEMATIC_DEGREE
 
 N_BOUNDS = (1.05, 20.0)
 ASYMMETRY_MAX = 0.3  # |e| of the flank-wise fit (right flank (1 + e) r, left (1 - e) r)
@@ -73,26 +74,23 @@ def _ess_factor(res, groups):
     return float(np.average(facs, weights=wts)) if facs else 1.0
 
 
-# Edge error the image model does not know (Fresnel fringes, a layer, the detector): where the
-# silhouette fit's reduced chi^2 says the image is not the model's (chi2_red > 1 + 3 sqrt(2/N), N
-# its pixels), a smooth offset of each flank's edge along its normal, of SD EDGE_SYSTEMATIC_PX x
-# min(1, sqrt(chi2_red - 1 - 3 sqrt(2/N))) pixels in each of the Legendre components 1, t, t^2
-# (t = 2 z / h - 1) over the fit window, the two flanks independent.  On wave-optical images
-# (benchmarks/bench_tem_independent.py) the Beer-Lambert edge lies a median 0.5 nm (1-5 px) off the
-# true silhouette; of 0.5, 0.75 and 1 px (83, 87, 92 % of n within 2 sigma_n) 1 px is the smallest
-# that reaches 90 % (set on that grid, not derived).  An image the model describes keeps the
-# noise-only covariance.
-EDGE_SYSTEMATIC_PX = 1.0
-EDGE_SYSTEMATIC_DEGREE = 2
-
-
-def _systematic_cov(jac, t, side, sd):
+# Edge error the image model does not know (``pipeline.tem.model_error``: constants and gate there): a
+# smooth offset of each flank's edge along its normal, Legendre components 1, t, t^2, the flanks
+# independent; the mean of the flanks' constant offsets is in the edge covariance of stage 1 when the
+# profile says so (``common_in_edge``), and is then left out here.
+def _systematic_cov(jac, t, side, sd, common_in_edge=False):
     """Covariance of the fitted parameters from the smooth per-flank edge offsets above: a point
     moved along its normal by d changes its orthogonal residual by -d, the fit absorbs
-    -(J^T J)^-1 J^T of that."""
+    -(J^T J)^-1 J^T of that.  ``common_in_edge``: the flanks' common constant offset (SD sd / sqrt 2
+    of their mean) is carried by the edge covariance, so of the two constant components only their
+    difference is added here (the two together are the same covariance: a rotation of the pair)."""
     t = np.clip(2.0 * t - 1.0, -1.0, 1.0)
     leg = np.polynomial.legendre.legvander(t, EDGE_SYSTEMATIC_DEGREE)  # (N, D+1)
-    X = np.hstack([leg * (side < 0)[:, None], leg * (side > 0)[:, None]])
+    left, right = leg * (side < 0)[:, None], leg * (side > 0)[:, None]
+    if common_in_edge:
+        X = np.hstack([(left[:, :1] - right[:, :1]) / np.sqrt(2.0), left[:, 1:], right[:, 1:]])
+    else:
+        X = np.hstack([left, right])
     M = np.linalg.solve(jac.T @ jac, jac.T @ X)
     return sd**2 * (M @ M.T)
 
@@ -160,6 +158,7 @@ def _fit_power_law(
     flank=None,
     loss=None,
     systematic_px=0.0,
+    common_in_edge=False,
 ) -> PowerLawFit:
     """Least-squares fit of z = z0 + |r|^n/(nQ) (Eq. 1) to points with z <= fit_height.
 
@@ -195,7 +194,7 @@ def _fit_power_law(
     e = res.fun
     flags = []
     cov_p, edge_part = _param_covariance(
-        res, pf, free, groups, side, edge, (rs, zs, hs, sc), pixel_size, systematic_px, flags
+        res, pf, free, groups, side, edge, (rs, zs, hs, sc), pixel_size, systematic_px, flags, common_in_edge
     )
     # (n, ln r_h) -> (n, ln Q) in SI:  ln Q = n ln r_h - ln n - ln h  (lengths in m)
     lrh_si = lrh + np.log(sc)
@@ -266,7 +265,7 @@ def _start(rs, zs, hs):
     return p0, lb, ub
 
 
-def _param_covariance(res, pf, free, groups, side, edge, scaled, pixel_size, systematic_px, flags):
+def _param_covariance(res, pf, free, groups, side, edge, scaled, pixel_size, systematic_px, flags, common_in_edge):
     """(5x5 covariance of the parameters in scaled units, share of the residual variance the edge
     noise explains or None): residual covariance inflated by the autocorrelation, or the propagated
     edge covariance plus the unexplained share of it, plus the systematic edge term; NaN and the
@@ -289,7 +288,8 @@ def _param_covariance(res, pf, free, groups, side, edge, scaled, pixel_size, sys
             edge_part = float(min(1.0, explained))
             cov_f = cov_e + max(0.0, 1.0 - explained) * cov_f
         if side is not None and systematic_px > 0 and pixel_size:
-            cov_f = cov_f + _systematic_cov(J, zs / hs, side, systematic_px * pixel_size / sc)
+            common = common_in_edge and edge is not None
+            cov_f = cov_f + _systematic_cov(J, zs / hs, side, systematic_px * pixel_size / sc, common)
         cov_p[np.ix_(free, free)] = cov_f
     except np.linalg.LinAlgError:
         cov_p = np.full((5, 5), np.nan)

@@ -4,21 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.fits.power_law import EDGE_SYSTEMATIC_PX, _fit_power_law
+from pipeline.fits.power_law import _fit_power_law
 from pipeline.fits.result import FitError, PowerLawFit
 from pipeline.fits.screening import _one_flank_runs, _where
+from pipeline.tem.model_error import EDGE_SYSTEMATIC_PX, misfit_gain
 from pipeline.tem.turn_back import TURN_BACK_MAX, TURN_BACK_PX, TURN_BACK_TOL
 from pipeline.tem.turn_back import turned_back as _turned_back
 
 
 def _systematic_px(image_chi2_red, image_n_pixels):
-    """The smooth edge error (px per flank) the image fit's reduced chi^2 leaves beyond noise."""
-    sys_px = 0.0
-    if image_chi2_red is not None and np.isfinite(image_chi2_red):
-        # chi2_red of a model-true image scatters by sqrt(2 / N) about 1: 3 SD of that are noise
-        allow = 3.0 * np.sqrt(2.0 / image_n_pixels) if image_n_pixels else 0.0
-        sys_px = EDGE_SYSTEMATIC_PX * min(1.0, float(np.sqrt(max(float(image_chi2_red) - 1.0 - allow, 0.0))))
-    return sys_px
+    """The smooth edge error (px per flank) the image fit's reduced chi^2 leaves beyond noise
+    (``pipeline.tem.model_error``)."""
+    return EDGE_SYSTEMATIC_PX * misfit_gain(image_chi2_red, image_n_pixels)
 
 
 def _screened_out(robust, r, z, side, win, r_scale, pixel_size, notes, flags):
@@ -57,16 +54,20 @@ def fit_power_law(
     screen=True,
     image_chi2_red=None,
     image_n_pixels=None,
+    image_model_error_sd=None,
 ) -> PowerLawFit:
     """``_fit_power_law`` (Eq. 1) on the profile points, screened first where both flanks are given
     (``screen``): points where the edge turns back (the radius shrinks with height) and runs
     that stand out of one flank only (contamination: the flanks' mirror symmetry broken) are
     left out, and the fit's ``notes`` say where; an edge that turns back over more than
-    TURN_BACK_MAX of its points is flagged "edge_turns_back" (unusable)."""
+    TURN_BACK_MAX of its points is flagged "edge_turns_back" (unusable).  ``image_model_error_sd`` (m):
+    the model-error common offset stage 1 put into ``edge_cov`` (None: a file from before it, or no
+    silhouette fit); with it, that mode is left out of the smooth edge error here."""
     r = np.abs(np.asarray(r, float))
     z = np.asarray(z, float)
     args = dict(fit_height=fit_height, S=S, pixel_size=pixel_size, r_scale=r_scale, fixed_n=fixed_n)
     sys_px = _systematic_px(image_chi2_red, image_n_pixels)
+    common = image_model_error_sd is not None
 
     pre = []  # notes known before the fit
     if edge_cov is not None and not np.all(np.isfinite(edge_cov)):
@@ -86,7 +87,7 @@ def fit_power_law(
 
     full = np.ones(r.size, bool)
     if not screen or flank is None:
-        fit = _fit_power_law(r, z, **args, **sub(full), systematic_px=sys_px)
+        fit = _fit_power_law(r, z, **args, **sub(full), systematic_px=sys_px, common_in_edge=common)
         fit.notes = pre + fit.notes
         return fit
     side = np.where(np.asarray(flank) < 0, -1, 1)
@@ -98,11 +99,12 @@ def fit_power_law(
     robust = _fit_power_law(r, z, **args, **sub(full), loss=("soft_l1", scale))
     bump, back = _screened_out(robust, r, z, side, win, r_scale, pixel_size, notes, flags)
     keep = full & ~bump & ~back
-    fit = _fit_power_law(r[keep], z[keep], **args, **sub(keep), systematic_px=sys_px)
+    fit = _fit_power_law(r[keep], z[keep], **args, **sub(keep), systematic_px=sys_px, common_in_edge=common)
     if sys_px > 0:
         notes.append(
             f"the image fit leaves more than noise (reduced chi^2 {image_chi2_red:.3g}): a smooth edge error of "
             f"{sys_px:.2f} px per flank is in the covariance"
+            + (" (the part common to both flanks as the edge's common offset of stage 1)" if common else "")
         )
     if fixed_n is None and FLANK_DISAGREEMENT:
         _add_flank_disagreement(fit, r, z, side, keep & win, args, notes)
@@ -162,6 +164,7 @@ def fit_tip_profile(profile, fit_height=6e-9, S=1.0, which="both") -> PowerLawFi
     both = which == "both"
     em = profile.edge_model or {}
     chi2, npx = em.get("global_chi2_red"), em.get("global_n_pixels")
+    me = em.get("global_model_error_px")
     return fit_power_law(
         np.abs(profile.x[i]),
         profile.z[i],
@@ -172,5 +175,6 @@ def fit_tip_profile(profile, fit_height=6e-9, S=1.0, which="both") -> PowerLawFi
         flank=profile.flank[i] if both else None,
         image_chi2_red=chi2 if both else None,
         image_n_pixels=npx,
+        image_model_error_sd=None if me is None or not edge else me * profile.pixel_size,
         **edge,
     )

@@ -26,6 +26,7 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
                 flank=prof["flank"] if both else None,
                 image_chi2_red=prof["chi2_red"] if both else None,
                 image_n_pixels=prof["n_pixels"],
+                image_model_error_sd=prof.get("model_error_sd"),
                 **(edge or {}),
             )
         except FitError as exc:
@@ -45,6 +46,7 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
             fixed_n=2.0,
             image_chi2_red=prof["chi2_red"],
             image_n_pixels=prof["n_pixels"],
+            image_model_error_sd=prof.get("model_error_sd"),
             **(edge or {}),
         )
     except FitError:

@@ -6,7 +6,9 @@ Metrics (SI units):
   (within 6 nm of the stage's own apex) to the true OUTER silhouette (coating included,
   contamination excluded), measured in the image
   plane to the nearest segment of the dense true curve: RMS overall and per flank (by the
-  side of the true axis a point lies on), signed mean (+ = outside the tip), max;
+  side of the true axis a point lies on), signed mean (+ = outside the tip), max; the reported SD
+  of that mean (the edge covariance, ``common_offset_sd``) and whether it covers the signed mean
+  at 2 sigma;
 - apex: distance of the reported apex from the true one, and its component along the true
   axis; the axis angle error (deg);
 - shape: n from stage 2 minus the true n; |dn| <= 2 sigma_n (coverage); n of the same
@@ -15,7 +17,8 @@ Metrics (SI units):
 - pull-off: the rigid Dugdale area factor pi (n h Q)^(2/n) (paper Eq. 12) of the fitted
   shape against the true section area pi r(h)^2 (1 + e^2/2) at h = 1..6 nm: max relative
   error, and whether the reported SD (from cov(n, ln Q)) covers it at 2 sigma;
-- chi2_red: the silhouette fit's reduced chi^2 (how far the image is from the edge model);
+- chi2_red: the silhouette fit's reduced chi^2 (how far the image is from the edge model); blur_sigma:
+  its fitted Gaussian blur (m);
 - lost: the interval cannot be used -- the stage raised (reason: its message), or the
   stage-2 fit carries a flag that makes the inversion drop it
   (``pipeline.inversion.UNUSABLE_FIT_FLAGS``), or the n policy rejects it (``clip_n``).
@@ -136,6 +139,18 @@ def ideal_fit(truth, fit_height=6e-9, spacing=0.05e-9):
     return fit_power_law(np.abs(x), z, fit_height, groups=side, flank=side)
 
 
+def common_offset_sd(profile, select):
+    """Reported SD (m) of the mean normal offset of the edge points ``select``: sqrt(a C a^T), a the mean
+    of the points' rows of ``offset_basis`` and C ``offset_cov`` (the edge covariance of stage 1, its
+    common terms included: fringe, saturation, model error); NaN without a covariance (then
+    ``edge_bias_covered`` is False: no claim is no cover)."""
+    cov, basis = getattr(profile, "offset_cov", None), getattr(profile, "offset_basis", None)
+    if cov is None or basis is None or not np.any(select):
+        return float("nan")
+    a = np.asarray(basis)[select].mean(axis=0)
+    return float(math.sqrt(max(float(a @ np.asarray(cov) @ a), 0.0)))
+
+
 def sigma_n(fit):
     """Reported SD of n: sqrt(cov(n, ln Q)[0, 0]) (``read_fit`` leaves ``fit.sigma_n`` NaN)."""
     c = np.asarray(fit.cov_n_lnQ, float)
@@ -166,6 +181,7 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
     g = rigid_dugdale_log_gradient(fit.n, fit.Q, heights)
     sd_f = np.sqrt(np.maximum(np.einsum("hi,ij,hj->h", g, np.asarray(fit.cov_n_lnQ), g), 0.0))
     ideal = ideal_fit(truth, fit_height)
+    sd_bias = common_offset_sd(profile, profile.z <= fit_height)
     em = profile.edge_model
     ct = em.get("coating_test") or {}
     return dict(
@@ -174,6 +190,8 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
         edge_rms_right=e["rms_right"],
         edge_bias=e["bias"],
         edge_max=e["max"],
+        edge_bias_sd=sd_bias,
+        edge_bias_covered=bool(abs(e["bias"]) <= 2 * sd_bias),
         edge_points=e["n_points"],
         apex_error=float(math.hypot(ax[0], az[0])),
         apex_dz=float(az[0]),
@@ -193,6 +211,7 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
         coating_ambiguous=bool(ct.get("ambiguous", False)),
         coating_found=float(em.get("coating_thickness", 0.0)),
         chi2_red=float(em.get("global_chi2_red", float("nan"))),
+        blur_sigma=float(em.get("blur_sigma", float("nan"))),
         lost=bool(lost_reason(fit)),
         lost_reason=lost_reason(fit),
     )

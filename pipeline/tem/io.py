@@ -114,6 +114,14 @@ def _write_edge_model(f, image, profile):
     if "global_chi2_red" in em:
         w(g, "chi2_reduced", em["global_chi2_red"], "1", "reduced chi^2 of the silhouette fit")
         w(g, "n_pixels", em["global_n_pixels"], "1", "pixels in the silhouette fit")
+        w(
+            g,
+            "model_error_offset_sd",
+            em.get("global_model_error_px", 0.0) * image.pixel_size,
+            "m",
+            "SD of the common edge offset for the edge model's error, included in /profile/offset_cov "
+            "(pipeline.tem.model_error; 0 where the model fits the image to its noise)",
+        )
         w(g, "binning", em.get("global_binning", 1), "1", "block size of the silhouette fit (b x b pixels)")
 
 
@@ -216,7 +224,9 @@ def _write_faint_layer(g, fl):
 
 def read_profile(profile_h5):
     """The profile file: ({"left"|"right"|"combined": (r, z, edge), "flank", "chi2_red", "n_pixels",
-    "edge_flags", "edge_is_core"}, pixel size (m)); edge is None or dict(edge_basis, edge_cov, normal_rz);
+    "model_error_sd", "edge_flags", "edge_is_core"}, pixel size (m)); edge is None or dict(edge_basis,
+    edge_cov, normal_rz); model_error_sd (m) the model-error common offset already in edge_cov, None in
+    files written before it was;
     edge_flags the edge model's warnings in words (a coating not identifiable, a faint layer beyond the
     edge, a singular covariance); edge_is_core True where a faint outer layer was seen beyond the
     fitted edge on each flank alone and the edge was not moved out to it (the profile is the core's).  h5py's errors
@@ -237,6 +247,8 @@ def read_profile(profile_h5):
         em = f.get("edge_model")
         out["chi2_red"] = float(em["chi2_reduced"][()]) if em is not None and "chi2_reduced" in em else None
         out["n_pixels"] = float(em["n_pixels"][()]) if em is not None and "n_pixels" in em else None
+        has = em is not None and "model_error_offset_sd" in em
+        out["model_error_sd"] = float(em["model_error_offset_sd"][()]) if has else None
         flags = np.atleast_1d(em["flags"][()]) if em is not None and "flags" in em else []
         out["edge_flags"] = [x.decode() if isinstance(x, bytes) else str(x) for x in flags if len(x)]
         fl = em.get("faint_layer") if em is not None else None

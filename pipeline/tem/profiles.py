@@ -175,6 +175,7 @@ def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fri
             global_flags=list(gf.flags),
             global_chi2_red=gf.chi2_red,
             global_n_pixels=gf.n_pixels,
+            global_model_error_px=gf.model_error_px,
             global_iterations=gf.n_iter,
             global_stderr=gf.stderr,
             global_binning=gf.binning,
