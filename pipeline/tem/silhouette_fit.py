@@ -65,8 +65,8 @@ is off by more than the noise covariance says: on the independent wave-optical s
 signed error was within 2 of its reported SD in 39 % of the 109 used grid images (43 % of 51 held-out),
 typically 0.1-0.4 nm against a reported 0.02-0.05 nm.  The covariance gains the common offset of
 ``model_error.common_offset_sd_px`` (in the image's pixels, after any binning), flag "edge model
-misfit ...".  What it does not cover is a light layer the fit did not see (a faint DLC coating, an
-oxide beside a clipped vacuum: the edge is the core's, 1.5-6 nm inside).
+misfit ...".  What it does not cover: edges placed inside a faint DLC layer (1.5-4 nm, up to the
+core), oxides hidden by a clipped vacuum (beyond the saturation term), misses of 0.3-0.9 nm.
 
 The result carries, for every output edge point, its B-spline row and the
 covariance of the c_k (marginal over all other parameters, px^2; from finite-
