@@ -118,7 +118,7 @@ def run_one(args):
     )
     for k, v in g.items():
         if k in ("fit_flags", "edge_flags"):
-            v = ";".join(v)
+            v = " | ".join(v)  # the flags are sentences, some with ";" in them
         elif k in (
             "edge_rms",
             "edge_rms_left",
