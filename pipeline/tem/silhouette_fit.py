@@ -388,8 +388,8 @@ def _fringe_words(fr, pixel_size):
     """The flag of an applied defocus-fringe correction."""
     nm = 1e9 * (pixel_size or float("nan"))
     return (
-        f"defocus fringes: edge moved {fr['offset_px'] * nm:+.2f} +- {fr['offset_sd_px'] * nm:.2f} nm by a coherent "
-        f"rendering of the fitted body (lambda x defocus {fr['A_px2'] * nm**2:+.1f} nm^2, i.e. "
+        f"defocus fringes: edge moved {fr['offset_px'] * nm:+.2f} +- {fr['offset_sd_px'] * nm:.2f} nm (noise) by a "
+        f"coherent rendering of the fitted body (lambda x defocus {fr['A_px2'] * nm**2:+.1f} nm^2, i.e. "
         f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f})"
     )
 
