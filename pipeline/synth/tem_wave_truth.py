@@ -16,7 +16,8 @@ Metrics (SI units):
   by the power law, the asymmetry and the 6 nm window);
 - pull-off: the rigid Dugdale area factor pi (n h Q)^(2/n) (paper Eq. 12) of the fitted
   shape against the true section area pi r(h)^2 (1 + e^2/2) at h = 1..6 nm: max relative
-  error, and whether the reported SD (from cov(n, ln Q)) covers it at 2 sigma;
+  error, and whether the reported SD (from cov(n, ln Q)) covers it at 2 sigma, linearly and with
+  (n, ln Q) drawn as the inversion draws them (``pulloff_covered_by_samples``);
 - chi2_red: the silhouette fit's reduced chi^2 (how far the image is from the edge model); blur_sigma:
   its fitted Gaussian blur (m);
 - lost: the interval cannot be used -- the stage raised (reason: its message), or the
@@ -139,6 +140,28 @@ def ideal_fit(truth, fit_height=6e-9, spacing=0.05e-9):
     return fit_power_law(np.abs(x), z, fit_height, groups=side, flank=side)
 
 
+def pulloff_covered_by_samples(fit, truth, heights=HEIGHTS, size=4000, seed=0):
+    """Is the true area factor inside the central 95.4 % (2 sigma) of the rigid Dugdale area factors
+    (Eq. 12) of (n, ln Q) drawn from the fit's covariance as the inversion draws them
+    (``inversion.montecarlo.draw_interval``: normal, then the n < 2 policy ``clip_samples``), at every
+    height?  The linear 2-SD test (``pulloff_covered``) misreads a skewed spread at large sigma_n."""
+    from pipeline.fits.power_law import rigid_dugdale_area
+    from pipeline.inversion.shape import clip_samples
+
+    cov = np.asarray(fit.cov_n_lnQ, float)
+    if not np.all(np.isfinite(cov)):
+        return False
+    nl = np.random.default_rng(seed).multivariate_normal([fit.n, fit.ln_Q], cov, size, method="eigh")
+    n, ln_q = clip_samples(nl[:, 0], nl[:, 1], fit.S)
+    ok = np.isfinite(n) & np.isfinite(ln_q)
+    if ok.sum() < size // 2:
+        return False
+    h = np.asarray(heights, float)
+    ratio = rigid_dugdale_area(n[ok, None], np.exp(ln_q[ok, None]), h[None, :]) / true_section_area(truth, h)
+    lo, hi = np.percentile(ratio, [2.275, 97.725], axis=0)
+    return bool(np.all((lo <= 1.0) & (1.0 <= hi)))
+
+
 def common_offset_sd(profile, select):
     """Reported SD (m) of the mean normal offset of the edge points ``select``: sqrt(a C a^T), a the mean
     of the points' rows of ``offset_basis`` and C ``offset_cov`` (the edge covariance of stage 1, its
@@ -205,6 +228,7 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
         pulloff_error=float(np.max(np.abs(f_err))),
         pulloff_error_signed=float(f_err[np.argmax(np.abs(f_err))]),
         pulloff_covered=bool(np.all(np.abs(f_err) <= 2 * sd_f)),
+        pulloff_covered_mc=pulloff_covered_by_samples(fit, truth, heights),
         fit_flags=list(fit.flags),
         edge_flags=list(em.get("global_flags", [])),
         coating_model=ct.get("model", ""),
