@@ -259,3 +259,68 @@ def test_an_apex_outside_the_image_or_a_missing_flank_is_refused_in_words():
         _check_apex_found(np.array([-4.23e9, 2.1e10]), (512, 512), x, zz, 100.0, "img.tif")
     with pytest.raises(NoTipError, match=r"with 0 left and 200 right flank points near it.*wider than the field"):
         _check_apex_found(np.array([200.0, 300.0]), (512, 512), np.abs(x), zz, 100.0, "img.tif")
+
+
+def _wide_flat_tip_leaving_the_field():
+    """Interval 5 of the end-to-end study's tip 1009 (``bench_wear_test_wave``): a flat oxidised
+    tip (n 4.29, R 15.5 nm) rotated by -10 deg at 0.104 nm px, whose right flank leaves the
+    1024 px field through its side 45 nm above the apex, 0.9 um overfocus, contamination on both
+    flanks (wave-optical simulator, parameters written out)."""
+    from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
+
+    parts = (
+        ParticleSpec(1.12e-08, 3.456, (9.065e-10, 1.549e-09, 1.304e-09), 0.6409, 114.3, "apex"),
+        ParticleSpec(8.038e-09, -19.26, (2.159e-09, 1.42e-09, 1.516e-09), 0.3878, 117.9, "apex"),
+        ParticleSpec(4.801e-08, 193.0, (7.483e-09, 1.031e-08, 1.146e-08), 0.5, 0.0, "shank"),
+        ParticleSpec(8.379e-08, -1.359, (7.924e-09, 6.578e-09, 9.393e-09), 0.5, 0.0, "shank"),
+        ParticleSpec(7.919e-08, 165.4, (8.479e-09, 6.718e-09, 7.018e-09), 0.5, 0.0, "shank"),
+    )
+    return TemWaveParams(
+        n=4.289, R=1.553e-08, S=1.042, z_join=1.565e-08, shank_half_angle_deg=14.08, blend_length=3.749e-08,
+        layer="oxide", layer_thickness=1.047e-09, core_absorption_length_200kv=7.551e-08, layer_contrast=0.3098,
+        contamination_contrast=0.2055, particles=parts, pixel_size=1.037e-10, shape=(1024, 1024),
+        apex_px=(746.2, 595.5), rotation_deg=-10.25, kv=263.0, defocus=-9.108e-07, cs=0.001856, aperture=0.01022,
+        illumination_angle=4.004e-05, cc=0.001363, energy_spread_ev=0.3858, snr=28.34, bits=8,
+        background_level=0.7008, offset=4.02, read_noise=0.4132, psf_sigma=0.5928, psf_tail_weight=0.002819,
+        psf_tail_length=3.664, illumination_gradient=0.03025, gradient_angle_deg=209.4, vignetting=0.02258,
+        seed=7016149,
+    )  # fmt: skip
+
+
+def test_a_flank_leaving_the_field_through_its_side_does_not_turn_the_axis(tmp_path):
+    """The coarse axis is taken from cuts across the tip up to 3 window heights above its apex; cuts
+    above the height where a flank leaves the image are incomplete.  They had turned this tip's axis
+    58 deg round (coarse +48 deg against +10), onto a corner of the flat apex: the edge was right but
+    only one true flank was fitted, n = 1.79 +- 0.11 against 4.29, unflagged and used (pull-off -83 %).
+    Without them, the contamination 45 nm up the left flank (30 of the 108 cuts) still held the coarse
+    axis 7 deg off, and the stage's axis 4.3 deg: the cut midpoints' line is now started from each half
+    of the cuts too (``edges._robust_slope``)."""
+    from pipeline.synth.tem_wave import simulate, write_image
+    from pipeline.synth.tem_wave_truth import evaluate_file
+    from pipeline.tem.edges import locate_tip
+
+    p = _wide_flat_tip_leaving_the_field()
+    img, truth = simulate(p)
+    coarse, _ = locate_tip(img.astype(float), 1.3 * 20e-9 / p.pixel_size)
+    assert abs(math.degrees(coarse.angle) + p.rotation_deg) < 1.0
+    write_image(tmp_path / "img.tif", img, p.pixel_size)
+    g = evaluate_file(tmp_path / "img.tif", truth)
+    assert not g["lost"]
+    assert abs(g["axis_error_deg"]) < 0.5 and g["apex_error"] < 0.5 * NM
+    assert abs(g["dn"]) <= 2 * g["sigma_n"]
+
+
+def test_the_axis_line_through_cut_midpoints_rejects_a_block_of_contaminated_cuts():
+    """Midpoints of cuts up a straight tip (tilt 0.1, half width growing) with the top 30 % shifted
+    by a particle on one flank: a line started from all cuts absorbs the block by tilting (no cut
+    then looks like an outlier); the start from the lower half rejects it."""
+    from pipeline.tem.edges import _robust_slope, axis_tilt
+
+    h = np.arange(20.0, 120.0)
+    r = 5.0 * np.sqrt(h)
+    m = 0.1 * (h + r * np.gradient(r, h)) + 0.05 * np.sin(h)  # axis_tilt's model, a little noise
+    assert abs(_robust_slope(h, m, r) - 0.1) < 0.005
+    blocked = np.where(h >= 90.0, m - 12.0, m)
+    keep_all = np.ones(h.size, bool)
+    assert abs(axis_tilt(h, blocked - r, blocked + r, keep_all)[0] - 0.1) > 0.05  # what the plain fit does
+    assert abs(_robust_slope(h, blocked, r) - 0.1) < 0.005

@@ -21,10 +21,13 @@ whether the 95 % interval covers it.
 from __future__ import annotations
 
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from pipeline.synth import wave_shapes
 
 
 @dataclass
@@ -191,6 +194,7 @@ def run_case(
     h_grid=None,
     oracle_invols=False,
     generator="instrument",
+    shapes="drawn",
 ) -> dict:
     """Write the case's curves and fits, run stages 3-5 (Dugdale law), compare with the truth.
 
@@ -201,65 +205,110 @@ def run_case(
     default k with its uncertainty and no InvOLS (per interval, from the contact slopes).
     ``oracle_invols``: every interval is given its true InvOLS with no uncertainty instead
     (what the data would give with a perfect calibration: the errors left are the shape fits'
-    and the pull-off scatter's).  Returns a dict of the errors and the coverage of the 95 %
-    intervals; ``fp_err_max`` is the worst interval F_p (as stage 4 uses it, after the contact
-    compliance correction) against the weighted truth of the curves used."""
-    from pipeline.forces.stage import run_forces
+    and the pull-off scatter's).  ``shapes``: ``drawn`` (default; the fits drawn around the true
+    shape, ``_observed_shape``) or ``wave`` (every interval imaged by the wave-optical TEM
+    simulator and measured by stages 1 and 2, ``pipeline.synth.wave_shapes``: the whole workflow
+    on data it did not generate; an interval whose stage raises is left out, as a user would,
+    and a lost reference ends the case with status ``reference lost``).  Returns a dict of the
+    errors and the coverage of the 95 % intervals; ``fp_err_max`` is the worst interval F_p (as
+    stage 4 uses it, after the contact compliance correction) against the weighted truth of the
+    curves used; ``shape_records`` (wave) the stage-2 result of every interval."""
     from pipeline.inversion.io import load_inversion
     from pipeline.inversion.stage import run_inversion
-    from pipeline.synth.stage_inputs import write_synthetic_fit
 
-    tmp = tempfile.TemporaryDirectory() if workdir is None else None
-    root = Path(workdir or tmp.name)
     rng = np.random.default_rng([case.seed, 0x5EED])
     F = true_forces(case) * case.bias
     cant = cantilever or {"spring_constant": case.k, "spring_constant_uncertainty": case.u_k_rel * case.k}
-    cant = {**cant, "base_dir": str(root)}
     lever, inst = _instrument(case, np.random.default_rng([case.seed, 0x1257]))
-    fits, forces, ivs, truth_F = {}, {}, [], {}
-    for i, (n, Fi) in enumerate(zip(case.n, F)):
-        nm = f"i{i}"
-        paths, F_curves, reader = _write_curves(case, i, n, Fi, root / "curves" / nm, rng, generator, lever, inst)
-        forces[nm] = str(root / "forces" / f"{nm}.h5")
-        icfg = (
-            {"deflection_sensitivity": float(case.invols[i]), "deflection_sensitivity_uncertainty": 0.0}
-            if oracle_invols
-            else {}
-        )
-        run_forces(
-            paths,
-            forces[nm],
-            root / "forces" / f"{nm}.png",
-            cantilever=cant,
-            reader=reader,
+    materials = wave_shapes.tip_materials(case.seed) if shapes == "wave" else None
+    with _workdir(workdir) as root:
+        cant = {**cant, "base_dir": str(root)}
+        fits, forces, ivs, truth_F, shape_records = {}, {}, [], {}, []
+        for i, (n, Fi) in enumerate(zip(case.n, F)):
+            nm = f"i{i}"
+            fits[nm] = str(root / "fits" / f"{nm}.h5")
+            if shapes == "wave":  # imaged and measured first: the image's area sets the true force
+                p = wave_shapes.interval_params(case.seed, i, n, case.R, case.S, materials)
+                Path(fits[nm]).parent.mkdir(parents=True, exist_ok=True)
+                rec = wave_shapes.wave_interval_fit(p, fits[nm], root, case.S, case.h)
+                shape_records.append(dict(rec, interval=nm, reference=i == 0))
+                if not Path(fits[nm]).exists():  # the stage raised: the interval is dropped
+                    del fits[nm]
+                    if i == 0:
+                        break
+                    continue
+                Fi = Fi * rec["area_factor"]
+            forces[nm], truth_F[nm] = _interval_forces(
+                case, i, n, Fi, root, rng, generator, (lever, inst), cant, oracle_invols
+            )
+            if shapes != "wave":
+                _drawn_fit(case, i, n, fits[nm], rng)
+            ivs.append({"name": nm, "scans": 10 * i, "reference": i == 0})
+        if "i0" not in fits:
+            status = {"status": "reference lost", "shape_records": shape_records}
+            return {"seed": case.seed, "kind": case.kind, "intervals": len(case.n), **status}
+        run_inversion(
+            fits,
+            forces,
+            root / "inversion.h5",
+            intervals=ivs,
+            E_star=case.E_star,
+            u_E_star=0.03 * case.E_star,
+            h_grid=np.geomspace(0.1e-9, 20e-9, 160) if h_grid is None else h_grid,
+            laws=("dugdale",),
+            mc_samples=mc_samples,
+            seed=case.seed,
             tip=f"case{case.seed}",
-            interval=nm,
-            interval_cfg=icfg,
         )
-        truth_F[nm] = _weighted_truth(forces[nm], F_curves)
-        n_obs, lnr_obs, cov = _observed_shape(case, n, rng)
-        fits[nm] = str(root / "fits" / f"{nm}.h5")
-        para = _reference_paraboloid(case) if i == 0 else None
-        write_synthetic_fit(fits[nm], n_obs, lnr_obs, case.S, cov, flags=("",), rms_residual=0.05e-9, paraboloid=para)
-        ivs.append({"name": nm, "scans": 10 * i, "reference": i == 0})
-    h = np.geomspace(0.1e-9, 20e-9, 160) if h_grid is None else h_grid
-    run_inversion(
-        fits,
-        forces,
-        root / "inversion.h5",
-        intervals=ivs,
-        E_star=case.E_star,
-        u_E_star=0.03 * case.E_star,
-        h_grid=h,
-        laws=("dugdale",),
-        mc_samples=mc_samples,
-        seed=case.seed,
-        tip=f"case{case.seed}",
-    )
-    out = _against_truth(load_inversion(root / "inversion.h5"), case, truth_F)
-    if tmp is not None:
-        tmp.cleanup()
+        out = _against_truth(load_inversion(root / "inversion.h5"), case, truth_F)
+    out["shape_records"] = shape_records
     return out
+
+
+@contextmanager
+def _workdir(workdir):
+    """``workdir`` as a Path, or a temporary directory removed afterwards."""
+    if workdir is not None:
+        yield Path(workdir)
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        yield Path(tmp)
+
+
+def _interval_forces(case, i, n, Fi, root, rng, generator, instrument, cant, oracle_invols):
+    """Write interval ``i``'s curves and run stage 3 on them: (forces HDF5 path, true F_p weighted as
+    stage 3 weighted the curves)."""
+    from pipeline.forces.stage import run_forces
+
+    nm = f"i{i}"
+    paths, F_curves, reader = _write_curves(case, i, n, Fi, root / "curves" / nm, rng, generator, *instrument)
+    out = str(root / "forces" / f"{nm}.h5")
+    icfg = (
+        {"deflection_sensitivity": float(case.invols[i]), "deflection_sensitivity_uncertainty": 0.0}
+        if oracle_invols
+        else {}
+    )
+    run_forces(
+        paths,
+        out,
+        root / "forces" / f"{nm}.png",
+        cantilever=cant,
+        reader=reader,
+        tip=f"case{case.seed}",
+        interval=nm,
+        interval_cfg=icfg,
+    )
+    return out, _weighted_truth(out, F_curves)
+
+
+def _drawn_fit(case, i, n, path, rng):
+    """Interval ``i``'s stage-2 file with the fit drawn around the true shape (``_observed_shape``;
+    the reference also gets its paraboloid fit)."""
+    from pipeline.synth.stage_inputs import write_synthetic_fit
+
+    n_obs, lnr_obs, cov = _observed_shape(case, n, rng)
+    para = _reference_paraboloid(case) if i == 0 else None
+    write_synthetic_fit(path, n_obs, lnr_obs, case.S, cov, flags=("",), rms_residual=0.05e-9, paraboloid=para)
 
 
 def _against_truth(inv: dict, case: Case, truth_F: dict) -> dict:
