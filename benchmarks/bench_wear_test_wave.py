@@ -74,11 +74,23 @@ def _line(r):
 
 
 def summary(rows):
+    _summary_line(rows, f"\n{len(rows)} tips")
+    for layer in sorted({r.get("layer", "") for r in rows} - {""}):
+        _summary_line(
+            [r for r in rows if r.get("layer") == layer],
+            f"  {layer}: {sum(r.get('layer') == layer for r in rows)} tips",
+        )
+
+
+def _summary_line(rows, head):
     ok = [r for r in rows if r.get("status") == "ok"]
+    if not ok:
+        print(f"{head}, none with an h")
+        return
     dh = np.abs([r["h_err"] for r in ok])
     dw = np.abs([r["W_err"] for r in ok])
     print(
-        f"\n{len(rows)} tips, {len(ok)} with an h; intervals lost {sum(r.get('lost_intervals', 0) for r in rows)}; "
+        f"{head}, {len(ok)} with an h; intervals lost {sum(r.get('lost_intervals', 0) for r in rows)}; "
         f"median / max |dh| {100 * np.median(dh):.1f} / {100 * dh.max():.1f} %, "
         f"|dW_A| {100 * np.median(dw):.1f} / {100 * dw.max():.1f} %; 95 % interval covers h in "
         f"{sum(r['h_covered'] for r in ok)} of {len(ok)} ({sum(not np.isfinite(r['h_rel_halfwidth']) for r in ok)} "

@@ -44,3 +44,27 @@ def test_one_tip_through_the_whole_workflow_from_wave_images():
     assert r["status"] == "ok" and r["h_covered"] and abs(r["h_err"]) < 0.15
     z = [(x["n_fit"] - x["n_true"]) / x["sigma_n"] for x in recs]
     assert np.max(np.abs(z)) < 2.0
+
+
+def test_an_unusable_reference_leaves_the_tip_without_an_h_and_a_raising_stage_drops_its_interval(monkeypatch):
+    """The study's bookkeeping, with stages 1-2 stubbed: interval 2's stage raises (left out, no
+    curves), the reference's fit is flagged ``edge_is_core`` (the inversion finds no usable
+    reference: status ``no_reference``, not a crash)."""
+    from pipeline.synth import calibration_study as cs
+    from pipeline.synth.stage_inputs import write_synthetic_fit
+
+    def fake_fit(p, fit_h5, workdir, S, h):
+        if p.n > 2 and p.seed % 16 == 2:
+            return dict(n_true=p.n, area_factor=1.0, raised=True, lost=True, lost_reason="ValueError: stub")
+        flags = ("edge_is_core",) if p.n == 2 else ("",)
+        cov = np.diag([0.05**2, 0.01**2])
+        write_synthetic_fit(fit_h5, p.n, np.log(p.R), S, cov, flags=flags)  # no paraboloid fit: unusable
+        return dict(n_true=p.n, area_factor=1.0, raised=False, lost=p.n == 2, lost_reason="")
+
+    monkeypatch.setattr(wave_shapes, "wave_interval_fit", fake_fit)
+    case = cs.draw_case(3, "rigid")
+    case.n_curves = 3
+    r = cs.run_case(case, shapes="wave", mc_samples=50)
+    assert r["status"] == "no_reference"
+    assert [x["interval"] for x in r["shape_records"]] == [f"i{i}" for i in range(len(case.n))]
+    assert r["shape_records"][2]["raised"]

@@ -232,7 +232,7 @@ def run_case(
                 Path(fits[nm]).parent.mkdir(parents=True, exist_ok=True)
                 rec = wave_shapes.wave_interval_fit(p, fits[nm], root, case.S, case.h)
                 shape_records.append(dict(rec, interval=nm, reference=i == 0))
-                if not Path(fits[nm]).exists():  # the stage raised: the interval is dropped
+                if rec["raised"]:  # the stage raised: the interval is dropped
                     del fits[nm]
                     if i == 0:
                         break
@@ -326,7 +326,11 @@ def _against_truth(inv: dict, case: Case, truth_F: dict) -> dict:
         "lambda_over_boundary": _max_lambda_ratio(case),
     }
     for model in ("random_effects", "birge"):  # the default first: its keys are unprefixed
-        g = analyse_law(inv, "dugdale", model)["global"]
+        res = analyse_law(inv, "dugdale", model)
+        if "global" not in res:  # no usable reference (stage 2 flagged it): no h, said so
+            out.update(status=res.get("status", "no_reference"), note=" ".join(res.get("notes", [])))
+            return out
+        g = res["global"]
         hp, wp = np.asarray(g["h_pcts"]), np.asarray(g["W_pcts"])
         r = {
             "status": g.get("status", ""),

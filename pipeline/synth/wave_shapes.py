@@ -12,7 +12,8 @@ law (Eq. 12, rigid Dugdale: F = (W_A / h) pi r(h)^2; the limacon section of asym
 1 + e^2 / 2 times the area): ``area_factor``.
 
 An interval whose stage 1 or 2 raises is lost, as a user would drop it after the workflow stopped
-on it; one that stage 2 flags unusable is passed on (the inversion drops it and says so).
+on it; one that stage 2 flags unusable is passed on (the inversion drops it and says so; an unusable
+reference leaves the tip without an h, status ``no_reference``).
 """
 
 from __future__ import annotations
@@ -68,8 +69,7 @@ def wave_interval_fit(p, fit_h5, workdir, S: float, h: float) -> dict:
     """Render ``p``, run stages 1 and 2 on it (the workflow defaults) and write the stage-2
     file ``fit_h5``.  Returns a record: ``area_factor`` (true section area at the adhesion range
     ``h`` (m) over pi r_axi(h)^2 of the axisymmetric power law), the true and fitted n, sigma_n,
-    the flags, ``lost`` and its reason."""
-    from pipeline.fits import FitError
+    the flags, ``lost`` and its reason, ``raised`` (the stage raised: no fit file)."""
     from pipeline.fits.io import read_fit
     from pipeline.fits.stage import run_fit
     from pipeline.synth.tem_wave import simulate, write_image
@@ -98,9 +98,11 @@ def wave_interval_fit(p, fit_h5, workdir, S: float, h: float) -> dict:
             profile = extract_profile(image)
             write_profile_h5(Path(tmp) / "profile.h5", image, profile)
             run_fit(Path(tmp) / "profile.h5", fit_h5, fit_height=FIT_HEIGHT, S=S)
-        except (ValueError, FitError, np.linalg.LinAlgError) as exc:
-            return dict(rec, lost=True, lost_reason=f"{type(exc).__name__}: {exc}", n_fit=np.nan, sigma_n=np.nan)
+        except Exception as exc:  # noqa: BLE001 - any failure of the stage: the user drops the interval
+            Path(fit_h5).unlink(missing_ok=True)
+            failed = dict(n_fit=np.nan, sigma_n=np.nan, flags="", raised=True)
+            return dict(rec, **failed, lost=True, lost_reason=f"{type(exc).__name__}: {exc}")
     fit = read_fit(fit_h5)
     reason = lost_reason(fit)
-    fitted = dict(n_fit=float(fit.n), sigma_n=sigma_n(fit), flags=" | ".join(fit.flags))
+    fitted = dict(n_fit=float(fit.n), sigma_n=sigma_n(fit), flags=" | ".join(fit.flags), raised=False)
     return dict(rec, **fitted, lost=bool(reason), lost_reason=reason)

@@ -179,7 +179,7 @@ def axis_tilt(z, left, right, keep=None):
 def _robust_slope(h, m, r):
     """``axis_tilt`` from cut midpoints ``m`` and half widths ``r``, outliers
     (contamination) rejected.  Started from all cuts, from the lower and from the upper half;
-    a half's fit replaces the first where its median |residual| over all cuts is less than
+    a half's fit replaces the best so far where its median |residual| over all cuts is less than
     ``HALF_START_GAIN`` x the first's and by more than ``HALF_START_MIN_PX`` (clearly better: the
     midpoints lie on the block-averaged pixel grid, and near-equal fits must not swap on a
     rounding or on a faint layer the mask follows on one flank only).  A particle on one flank shifts
@@ -209,7 +209,9 @@ def _perpendicular_cut_axis(mask, apex_r, apex_c, theta, hgt, iters=6):
 
     Horizontal cuts of a tilted body are not centred on its axis (the two flanks
     have different slopes in the image), cuts perpendicular to the axis are:
-    iterate to the fixed point.  Boundary pixels 0.3-3 x ``hgt`` above the apex.
+    iterate to the fixed point.  Boundary pixels 0.3-3 x ``hgt`` above the apex, and below the
+    lowest height at which the mask touches the image's top or side edge (the cuts above are cut
+    short by the border).
     """
     from scipy.ndimage import binary_erosion
 
