@@ -324,3 +324,28 @@ def test_the_axis_line_through_cut_midpoints_rejects_a_block_of_contaminated_cut
     keep_all = np.ones(h.size, bool)
     assert abs(axis_tilt(h, blocked - r, blocked + r, keep_all)[0] - 0.1) > 0.05  # what the plain fit does
     assert abs(_robust_slope(h, blocked, r) - 0.1) < 0.005
+
+
+def test_a_light_layer_thicker_than_the_window_margins_does_not_hide_the_edge(tmp_path):
+    """Interval 1 of the end-to-end study's tip 1019 (wave-optical simulator, parameters written
+    out): an 18 nm DLC layer at 10 % of the core's contrast, 0.355 nm px.  The coarse mask holds
+    the core only, and the window (its box + 24 px) lay inside the layer: flattened to the layer,
+    the window had no edge near the apex and the stage raised "no tip in the image" on a clear
+    image.  The window now grows until the contour is found; the edge is the outer surface."""
+    from pipeline.synth.tem_wave import TemWaveParams, simulate, write_image
+    from pipeline.synth.tem_wave_truth import evaluate_file
+
+    p = TemWaveParams(
+        n=2.793, R=1.434e-08, S=1.499, z_join=2.177e-08, shank_half_angle_deg=12.57, blend_length=3.302e-08,
+        layer="DLC", layer_thickness=1.804e-08, core_absorption_length_200kv=5.839e-08, layer_contrast=0.1009,
+        contamination_contrast=0.2936, pixel_size=3.552e-10, shape=(608, 608), apex_px=(409.1, 290.2),
+        rotation_deg=6.67, kv=185.2, defocus=4.363e-07, cs=0.00136, aperture=0.01168, illumination_angle=0.0001144,
+        cc=0.001498, energy_spread_ev=0.3004, snr=25.25, bits=16, background_level=0.3301, float_gain=6.494,
+        offset=50.1, read_noise=5.997, psf_sigma=0.6816, psf_tail_weight=0.03124, psf_tail_length=4.394,
+        illumination_gradient=0.0181, gradient_angle_deg=21.67, vignetting=0.09204, seed=7016305,
+    )  # fmt: skip
+    img, truth = simulate(p)
+    write_image(tmp_path / "img.tif", img, p.pixel_size)
+    g = evaluate_file(tmp_path / "img.tif", truth)
+    assert not g["lost"], g["lost_reason"]
+    assert g["edge_rms"] < 0.3 * NM and abs(g["dn"]) <= 2 * g["sigma_n"]

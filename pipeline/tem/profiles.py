@@ -104,7 +104,7 @@ def _window_and_contour(img, coarse, hpx, path):
     (br0, br1), (bc0, bc1) = coarse.bbox
     m = dict(top=24, bottom=24, left=24, right=24)
     grow = max(24, int(0.5 * hpx))
-    for _ in range(5):
+    for attempt in range(5):
         r0, r1 = int(max(0, br0 - m["top"])), int(min(H, br1 + m["bottom"]))
         c0, c1 = int(max(0, bc0 - m["left"])), int(min(W, bc1 + m["right"]))
         win = img[r0:r1, c0:c1].astype(np.float64)
@@ -118,7 +118,13 @@ def _window_and_contour(img, coarse, hpx, path):
         try:
             cont = initial_contour(flat, level, ca - origin, smooth=2.0)
         except _Fail as exc:
-            raise _fail(path, exc) from None
+            # a light layer thicker than the margins that the coarse mask left out fills the
+            # window, whose background is then the layer: grow it on every side
+            if attempt == 4 or all(m[s] >= _max_margin(s, br0, br1, bc0, bc1, H, W) for s in m):
+                raise _fail(path, exc) from None
+            for side in m:
+                m[side] += grow
+            continue
         frame = TipFrame(ca - origin, th)
         cont = _clip_height(cont, frame, 1.3 * hpx + 8)
         hit = dict(
@@ -355,6 +361,11 @@ def extract_profile(
         offset_cov=cov,
         normal_rz=normal_rz,
     )
+
+
+def _max_margin(side, br0, br1, bc0, bc1, H, W):
+    """The margin (px) beyond which the window of ``_window_and_contour`` cannot grow on ``side``."""
+    return {"top": br0, "bottom": H - br1, "left": bc0, "right": W - bc1}[side]
 
 
 def _edge_level(flat, noise, smooth=2.0):
