@@ -16,7 +16,7 @@ the worn intervals' n against the truth in units of their sigma_n) and a summary
 rows to ``--csv``.  Never fails on time or accuracy.
 
     python benchmarks/bench_wear_test_wave.py [tips, default 24] [--seed0 1000] [--jobs 2]
-        [--shapes wave|drawn] [--csv out.csv]
+        [--shapes wave|drawn] [--csv out.csv] [--intervals-csv intervals.csv]
 """
 
 from __future__ import annotations
@@ -56,6 +56,7 @@ def run_tip(args):
         worn_used=len(z),
         worn_n_in_2sigma=int(np.sum(np.abs(z) <= 2.0)),
         lost_reasons=" | ".join(f"{x['interval']}: {x['lost_reason']}" for x in recs if x["lost"]),
+        intervals_detail=[dict(x, seed=seed) for x in recs],
     )
     return r
 
@@ -108,6 +109,7 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--shapes", choices=("wave", "drawn"), default="wave")
     ap.add_argument("--csv")
+    ap.add_argument("--intervals-csv", help="one row per interval: the true and fitted n, sigma_n, imaging, flags")
     a = ap.parse_args(argv)
     work = [(a.seed0 + s, a.shapes) for s in range(a.tips)]
     rows = []
@@ -116,12 +118,14 @@ def main(argv=None):
             print(_line(r), flush=True)
             rows.append(r)
     summary(rows)
-    if a.csv:
-        keys = sorted({k for r in rows for k in r})
-        with open(a.csv, "w", newline="") as f:
-            w = csv.DictWriter(f, keys)
-            w.writeheader()
-            w.writerows(rows)
+    details = [x for r in rows for x in r.pop("intervals_detail", [])]
+    for path, table in ((a.csv, rows), (a.intervals_csv, details)):
+        if path:
+            keys = sorted({k for r in table for k in r})
+            with open(path, "w", newline="") as f:
+                w = csv.DictWriter(f, keys)
+                w.writeheader()
+                w.writerows(table)
 
 
 if __name__ == "__main__":

@@ -269,3 +269,36 @@ def test_profile_without_an_apex_in_the_window_is_said_in_words():
     with pytest.raises(FitError, match="only 1 profile points below fit_height") as exc:
         fit_power_law(r, z, 6e-9)
     assert "no tip apex" in str(exc.value) and "tem.orientation" in str(exc.value)
+
+
+def test_an_edge_stage_1_did_not_fit_makes_the_interval_unusable_in_words(tmp_path):
+    """Where stage 1's silhouette fit found no sharp edge in its band (its body reached none of the
+    fitted pixels), the edge is its starting iso-contour: flagged ``edge_not_fitted`` (unusable) on the
+    free and the paraboloid fit, with the reason in the notes.  On the independent wave-optical images
+    the 5 such profiles of the grid and held-out sets were 0.4-2.7 nm off (all lost by other flags); the
+    end-to-end study's tip 1013 used one with n 3.8 sigma_n off."""
+    from pipeline.inversion.io import load_fit
+    from pipeline.inversion.shape import UNUSABLE_FIT_FLAGS
+    from pipeline.tem.silhouette_fit import _flat_model_words, edge_not_fitted
+
+    class _St:
+        T = np.ones(5)
+
+    words = "singular silhouette covariance" + _flat_model_words(_St())
+    assert edge_not_fitted([words]) and not edge_not_fitted(["singular silhouette covariance"])
+    r, z, _ = _profile(3.0, 15 * NM, noise=0.03 * NM)
+    flank = np.where(np.arange(r.size) % 2, 1, -1)
+    for not_fitted in (False, True):
+        prof = tmp_path / f"p{not_fitted}.h5"
+        _write_profile(prof, r, z, flank)
+        with h5py.File(prof, "a") as f:
+            em = h5io.create_group(f, "edge_model")
+            em.attrs["edge_not_fitted"] = not_fitted
+        run_fit(prof, tmp_path / f"f{not_fitted}.h5")
+        fit = load_fit(tmp_path / f"f{not_fitted}.h5")
+        flagged = "edge_not_fitted" in fit["flags"]
+        assert flagged == not_fitted and ("edge_not_fitted" in fit["paraboloid"]["flags"]) == not_fitted
+        assert bool(set(fit["flags"]) & UNUSABLE_FIT_FLAGS) == not_fitted
+        with h5py.File(tmp_path / f"f{not_fitted}.h5") as f:
+            notes = [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(f["fit/notes"][()])]
+        assert any("not a fit to the image" in x for x in notes) == not_fitted

@@ -46,6 +46,7 @@ UNUSABLE_FIT_FLAGS = frozenset(
         "few_points",
         "edge_turns_back",
         "edge_is_core",
+        "edge_not_fitted",
     }
 )
 USABLE_N_FLAGS = ("ok", "n_clipped_to_2")

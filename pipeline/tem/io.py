@@ -97,6 +97,9 @@ def _write_edge_model(f, image, profile):
     w(g, "n_rejected", em["n_rejected"], "1", "edge points rejected")
     g.attrs["refine"] = em.get("refine", "normals")
     flags = list(em.get("global_flags", []))
+    from pipeline.tem.silhouette_fit import edge_not_fitted
+
+    g.attrs["edge_not_fitted"] = edge_not_fitted(flags)  # the edge is the starting contour (stage 2: unusable)
     w(
         g,
         "flags",
@@ -253,5 +256,6 @@ def read_profile(profile_h5):
         out["edge_flags"] = [x.decode() if isinstance(x, bytes) else str(x) for x in flags if len(x)]
         fl = em.get("faint_layer") if em is not None else None
         out["edge_is_core"] = bool(fl is not None and fl.attrs.get("edge_is_core", False))
+        out["edge_not_fitted"] = bool(em is not None and em.attrs.get("edge_not_fitted", False))
         px = float(f["image"]["pixel_size"][()])
         return out, px

@@ -430,6 +430,15 @@ def _covariances(prob, fitter, st, JTJ, names, coat_test, pixel_size):
     return chi2, stderr, cov_c, flags
 
 
+EDGE_NOT_FITTED_WORDS = "the edge is the starting contour, not fitted"
+
+
+def edge_not_fitted(flags) -> bool:
+    """True where the silhouette fit's flags say its body reached none of the fitted pixels, so the
+    edge is the starting contour (``_flat_model_words``), not a fit to the image."""
+    return any(EDGE_NOT_FITTED_WORDS in f for f in flags)
+
+
 def _flat_model_words(st):
     """Why J^T J is singular where the model body reaches none of the fitted pixels (T = 1 everywhere:
     blur and attenuation change nothing; grid image 35 of bench_tem_independent, a 16.6 nm DLC layer
@@ -439,7 +448,7 @@ def _flat_model_words(st):
         return ""
     return (
         ": the fitted body reaches none of the fitted pixels (no sharp edge in the band; the illumination "
-        "gradient took the intensity ramp): the edge is the starting contour, not fitted"
+        f"gradient took the intensity ramp): {EDGE_NOT_FITTED_WORDS}"
     )
 
 
