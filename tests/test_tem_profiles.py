@@ -329,9 +329,10 @@ def test_the_axis_line_through_cut_midpoints_rejects_a_block_of_contaminated_cut
 def test_a_light_layer_thicker_than_the_window_margins_does_not_hide_the_edge(tmp_path):
     """Interval 1 of the end-to-end study's tip 1019 (wave-optical simulator, parameters written
     out): an 18 nm DLC layer at 10 % of the core's contrast, 0.355 nm px.  The coarse mask holds
-    the core only, and the window (its box + 24 px) lay inside the layer: flattened to the layer,
-    the window had no edge near the apex and the stage raised "no tip in the image" on a clear
-    image.  The window now grows until the contour is found; the edge is the outer surface."""
+    the core only, so the outer contour lay 34 px from the coarse apex, beyond the window-sized
+    distance within which it is taken (24 px), and the stage raised "no tip in the image" on a clear
+    image.  The window now grows (and that distance with it) until the contour is found; the edge is
+    the outer surface."""
     from pipeline.synth.tem_wave import TemWaveParams, simulate, write_image
     from pipeline.synth.tem_wave_truth import evaluate_file
 

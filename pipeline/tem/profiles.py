@@ -118,8 +118,11 @@ def _window_and_contour(img, coarse, hpx, path):
         try:
             cont = initial_contour(flat, level, ca - origin, smooth=2.0)
         except _Fail as exc:
-            # a light layer thicker than the margins that the coarse mask left out fills the
-            # window, whose background is then the layer: grow it on every side
+            # the coarse mask left out a light layer: the outer contour lies a layer's thickness
+            # beyond the coarse (core's) apex, further than the window-sized tolerance of
+            # ``initial_contour`` (0.1 x window + 5 px); grow the window on every side, which also
+            # widens that tolerance (so a contour of something else can be taken: the apex and
+            # flank checks after the fit are what catch it)
             if attempt == 4 or all(m[s] >= _max_margin(s, br0, br1, bc0, bc1, H, W) for s in m):
                 raise _fail(path, exc) from None
             for side in m:
