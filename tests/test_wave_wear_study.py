@@ -68,3 +68,10 @@ def test_an_unusable_reference_leaves_the_tip_without_an_h_and_a_raising_stage_d
     assert r["status"] == "no_reference"
     assert [x["interval"] for x in r["shape_records"]] == [f"i{i}" for i in range(len(case.n))]
     assert r["shape_records"][2]["raised"]
+
+
+def test_an_unknown_shape_source_is_refused_in_words():
+    from pipeline.synth.calibration_study import draw_case, run_case
+
+    with pytest.raises(ValueError, match=r"shapes must be 'drawn' or 'wave', got 'Wave'"):
+        run_case(draw_case(3, "rigid"), shapes="Wave")

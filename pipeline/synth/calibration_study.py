@@ -220,6 +220,8 @@ def run_case(
     F = true_forces(case) * case.bias
     cant = cantilever or {"spring_constant": case.k, "spring_constant_uncertainty": case.u_k_rel * case.k}
     lever, inst = _instrument(case, np.random.default_rng([case.seed, 0x1257]))
+    if shapes not in ("drawn", "wave"):
+        raise ValueError(f"run_case: shapes must be 'drawn' or 'wave', got {shapes!r}")
     materials = wave_shapes.tip_materials(case.seed) if shapes == "wave" else None
     with _workdir(workdir) as root:
         cant = {**cant, "base_dir": str(root)}
