@@ -350,3 +350,80 @@ def test_a_light_layer_thicker_than_the_window_margins_does_not_hide_the_edge(tm
     g = evaluate_file(tmp_path / "img.tif", truth)
     assert not g["lost"], g["lost_reason"]
     assert g["edge_rms"] < 0.3 * NM and abs(g["dn"]) <= 2 * g["sigma_n"]
+
+
+def _window_with_a_dim_band(band_dimming):
+    """A 300 x 400 image: a dark core (Otsu's tip) in a 20 nm light layer dimming the vacuum by
+    ``band_dimming``, under a tilted illumination plane, 0.25 nm px; window = the core + 30 px."""
+    rng = np.random.default_rng(3)
+    R, C = np.mgrid[0:300, 0:400].astype(float)
+    d = np.hypot(R - 80.0, C - 200.0) - 50.0  # px beyond a 50 px core centred at (80, 200)
+    body = np.where(d < 0, 0.3, np.where(d < 80.0, 1.0 - band_dimming, 1.0))
+    img = (1.0 + 0.0003 * R + 0.0002 * C) * body + rng.normal(0.0, 0.003, R.shape)
+    return img, (0, 160, 120, 280)
+
+
+@pytest.mark.parametrize("dimming", [0.0, 0.04])
+def test_a_dim_band_round_the_tip_is_not_taken_for_the_vacuum(dimming):
+    """``vacuum_level.vacuum_flattening``: where a faint layer fills the window round the core, its
+    plane is read on the vacuum beyond 30 nm and the window flattened on it (the vacuum at 1.00, the
+    layer at 1 - its dimming); with no layer, the window's own flattening is kept as it was."""
+    from pipeline.tem.edges import flatten_background
+    from pipeline.tem.vacuum_level import vacuum_flattening
+
+    img, (r0, r1, c0, c1) = _window_with_a_dim_band(dimming)
+    win = img[r0:r1, c0:c1]
+    flat, _ = flatten_background(win)
+    out, info = vacuum_flattening(img, (r0, r1, c0, c1), win, flat, 0.25e-9)
+    assert info["used"] == (dimming > 0)
+    if not info["used"]:
+        assert out is flat and abs(info["gain"]) < 0.003
+        return
+    R, C = np.mgrid[r0:r1, c0:c1]
+    layer = np.hypot(R - 80.0, C - 200.0) - 50.0
+    layer = (layer > 5) & (layer < 75)
+    assert abs(np.median(out[layer]) - (1 - dimming)) < 0.003
+    assert np.median(flat[layer]) > 1 - dimming / 4  # the window's own plane: the layer read as vacuum
+    assert "faint layer" in info["note"]
+
+
+def _faint_thick_layer_on_a_reference():
+    """Interval 0 (the paraboloidal reference) of the end-to-end study's tip 1043
+    (``bench_wear_test_wave``): a 19.7 nm DLC layer at 9.6 % of the core's contrast, 0.129 nm px,
+    particles near the apex (wave-optical simulator, parameters written out)."""
+    from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
+
+    parts = (
+        ParticleSpec(1.984e-08, -0.8721, (1.81e-09, 1.227e-09, 1.709e-09), 0.6448, 83.48, "apex"),
+        ParticleSpec(1.028e-08, -9.063, (1.534e-09, 7.354e-10, 1.132e-09), 0.6266, 175.6, "apex"),
+        ParticleSpec(1.019e-07, 199.0, (6.35e-09, 3.26e-09, 4.939e-09), 0.5, 0.0, "shank"),
+        ParticleSpec(3.356e-08, 189.6, (1.158e-08, 6.006e-09, 4.737e-09), 0.5, 0.0, "shank"),
+    )
+    return TemWaveParams(
+        n=2.0, R=2.111e-08, S=1.182, z_join=2.556e-08, shank_half_angle_deg=21.75, blend_length=2.672e-08,
+        layer="DLC", layer_thickness=1.974e-08, core_absorption_length_200kv=4.846e-08, layer_contrast=0.09612,
+        contamination_contrast=0.2884, particles=parts, pixel_size=1.292e-10, shape=(1024, 1024),
+        apex_px=(639.7, 478.0), rotation_deg=-12.76, kv=195.5, defocus=-7.672e-08, cs=0.001036, aperture=0.01253,
+        illumination_angle=0.0001276, cc=0.001529, energy_spread_ev=0.4752, snr=27.33, background_level=0.2428,
+        float_gain=8.671, offset=216.2, read_noise=4.784, psf_sigma=0.6496, psf_tail_weight=0.0008618,
+        psf_tail_length=2.29, illumination_gradient=0.01896, gradient_angle_deg=304.1, vignetting=0.05819,
+        seed=7016688,
+    )  # fmt: skip
+
+
+def test_a_faint_thick_layer_filling_the_window_does_not_pull_the_edge_into_it(tmp_path):
+    """The layer dims the vacuum by 2-4 %; the window's background plane, fitted to everything
+    brighter than its Otsu threshold (layer included), stood 3 % below the vacuum, so the starting
+    iso-level (2 % below the plane) lay inside the layer, and the edge wandered through it: 2.5 nm
+    inside the outer surface, the reference's pull-off -49 % (W_A +96 %, outside its interval).  The
+    window is now flattened on the vacuum beyond any layer (``vacuum_level``)."""
+    from pipeline.synth.tem_wave import simulate, write_image
+    from pipeline.synth.tem_wave_truth import evaluate_file
+
+    p = _faint_thick_layer_on_a_reference()
+    img, truth = simulate(p)
+    write_image(tmp_path / "img.tif", img, p.pixel_size)
+    g = evaluate_file(tmp_path / "img.tif", truth)
+    assert not g["lost"], g["lost_reason"]
+    assert g["edge_rms"] < 1.6 * NM and abs(g["pulloff_error"]) < 0.25  # was 2.8 nm and 49 %
+    assert abs(g["dn"]) <= 2 * g["sigma_n"]

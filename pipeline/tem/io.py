@@ -96,6 +96,8 @@ def _write_edge_model(f, image, profile):
     w(g, "rms_intensity", em["rms_intensity"], "1", "RMS intensity residual relative to the background")
     w(g, "n_rejected", em["n_rejected"], "1", "edge points rejected")
     g.attrs["refine"] = em.get("refine", "normals")
+    # the vacuum beyond 30 nm of the tip over the window's background plane, - 1 (pipeline.tem.vacuum_level)
+    g.attrs["vacuum_gain"] = float(em.get("vacuum_gain", np.nan))
     flags = list(em.get("global_flags", []))
     from pipeline.tem.silhouette_fit import edge_not_fitted
 

@@ -92,9 +92,13 @@ def _fail(path, exc):
     return NoTipError(path, msg)
 
 
-def _window_and_contour(img, coarse, hpx, path):
+def _window_and_contour(img, coarse, hpx, path, px, background=None):
     """(window, its origin in ``img``, flattened window, noise, initial contour, tip frame, clipped
-    pixels of the window or None) of ``extract_profile``."""
+    pixels of the window or None) of ``extract_profile``.  The window is flattened on the vacuum
+    beyond any layer where a faint thick layer pulled its own background down
+    (``vacuum_level.vacuum_flattening``); its reading goes into ``background`` (a dict) if given."""
+    from pipeline.tem.vacuum_level import vacuum_flattening
+
     H, W = img.shape
     # window: bounding box of the tip within 1.3 x profile_height of the apex, + margins;
     # grown where the outer contour runs into a window side (light coatings may be
@@ -114,6 +118,12 @@ def _window_and_contour(img, coarse, hpx, path):
             flat, noise = flatten_background(win, saturated)
         except _Fail as exc:
             raise _fail(path, exc) from None
+        flat, vac = vacuum_flattening(img, (r0, r1, c0, c1), win, flat, px)
+        if vac["used"]:
+            noise = noise / (1.0 + vac["gain"])  # the noise in units of the vacuum read there
+        if background is not None:
+            background.clear()
+            background.update(vac)
         level = _edge_level(flat, noise)
         try:
             cont = initial_contour(flat, level, ca - origin, smooth=2.0)
@@ -220,6 +230,14 @@ def _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra):
     return out
 
 
+def _note_background(extra, background):
+    """The vacuum reading of ``_window_and_contour`` into the edge model's entries: its gain, and
+    where the window was flattened on the vacuum beyond a faint layer, a flag in words."""
+    extra["vacuum_gain"] = float(background.get("gain", np.nan))
+    if background.get("used"):
+        extra["global_flags"] = list(extra.get("global_flags", [])) + [background["note"]]
+
+
 def _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty):
     """The faint-layer test after the global fit, and where it finds the edge to be the core's, the
     move out to the layer (``_outer_from_layer``). Returns (points, frame, uncertainty)."""
@@ -319,10 +337,12 @@ def extract_profile(
     except _Fail as exc:
         raise _fail(path, exc) from None
     img = image.data[::-1] if flipped else image.data
-    win, origin, flat, noise, cont, frame, saturated = _window_and_contour(img, coarse, hpx, path)
+    background = {}
+    win, origin, flat, noise, cont, frame, saturated = _window_and_contour(img, coarse, hpx, path, px, background)
     pts, frame, edge_model, extra, uncertainty = _refined_edge(
         win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction, saturated
     )
+    _note_background(extra, background)
     if extra.get("refine") == "global":
         pts, frame, uncertainty = _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty)
     x, z = frame.to_tip(pts)
