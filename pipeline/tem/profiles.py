@@ -119,8 +119,8 @@ def _window_and_contour(img, coarse, hpx, path, px, background=None):
         except _Fail as exc:
             raise _fail(path, exc) from None
         flat, vac = vacuum_flattening(img, (r0, r1, c0, c1), win, flat, px)
-        if vac["used"]:
-            noise = noise / (1.0 + vac["gain"])  # the noise in units of the vacuum read there
+        if vac["used"]:  # the noise in units of the vacuum read there (per square root of the level if clipped)
+            noise = noise / (1.0 + vac["gain"]) ** (1.0 if saturated is None else 0.5)
         if background is not None:
             background.clear()
             background.update(vac)
