@@ -96,19 +96,23 @@ def _window_px(mask, b, corner):
     return (rr + 0.5) * b - 0.5 + corner[0], (cc + 0.5) * b - 0.5 + corner[1]
 
 
-def _plane_over_window(win, flat, plane, rwn, cwn):
-    """(the vacuum's plane on the window grid, its median ratio - 1 to the window's own plane,
-    recovered as ``win`` / ``flat``, over the near-tip blocks at ``rwn``, ``cwn`` inside the window;
-    NaN where fewer than 20 are)."""
-    Rg, Cg = np.mgrid[0 : win.shape[0], 0 : win.shape[1]]
-    far_plane = _plane_terms(Rg.astype(float), Cg.astype(float), win.shape) @ plane
+def _plane_on_window(plane, shape):
+    """The plane ``plane`` (``_plane_terms``) on every pixel of a window of ``shape``."""
+    Rg, Cg = np.mgrid[0 : shape[0], 0 : shape[1]]
+    return _plane_terms(Rg.astype(float), Cg.astype(float), shape) @ plane
+
+
+def _gain_over_window(win, flat, plane, rwn, cwn):
+    """Median ratio - 1 of the vacuum's plane to the window's own (recovered as ``win`` / ``flat``) at
+    the pixels of the near-tip blocks at ``rwn``, ``cwn`` inside the window; NaN where fewer than 20 are."""
     inside = (rwn >= 0) & (rwn <= win.shape[0] - 1) & (cwn >= 0) & (cwn <= win.shape[1] - 1)
     if inside.sum() < 20:
-        return far_plane, np.nan
+        return np.nan
     iw, jw = np.round(rwn[inside]).astype(int), np.round(cwn[inside]).astype(int)
+    vacuum = _plane_terms(iw.astype(float), jw.astype(float), win.shape) @ plane
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = far_plane[iw, jw] * flat[iw, jw] / np.asarray(win, float)[iw, jw]
-    return far_plane, float(np.nanmedian(ratio) - 1.0)
+        ratio = vacuum * flat[iw, jw] / np.asarray(win, float)[iw, jw]
+    return float(np.nanmedian(ratio) - 1.0)
 
 
 def vacuum_flattening(img, bounds, win, flat, px):
@@ -136,11 +140,11 @@ def vacuum_flattening(img, bounds, win, flat, px):
         return flat, nothing
     rw, cw = _window_px(far, b, corner)
     plane = _plane_fit(sm[far], rw, cw, win.shape)
-    far_plane, gain = _plane_over_window(win, flat, plane, *_window_px(near, b, corner))
+    gain = _gain_over_window(win, flat, plane, *_window_px(near, b, corner))
     if not gain > MIN_GAIN:
         return flat, dict(gain=gain, used=False)
     note = (
         f"the window's background was {100 * gain:.1f} % below the vacuum read beyond "
         f"{LAYER_MAX_NM + MARGIN_NM:g} nm of the tip: a faint layer filled it; the window is flattened on that vacuum"
     )
-    return np.asarray(win, float) / far_plane, dict(gain=gain, used=True, note=note)
+    return np.asarray(win, float) / _plane_on_window(plane, win.shape), dict(gain=gain, used=True, note=note)
