@@ -270,6 +270,19 @@ def saturated_pixels(win, min_fraction=SATURATED_FRACTION):
     return at_top if n_top > PLATEAU_RATIO * n_next else None
 
 
+def clipped_plane_fit(A, vals):
+    """Least-squares coefficients of ``A @ coef`` ~ ``vals`` (a plane: columns 1, row, col), refitted
+    three times on the values within 3 robust SDs (1.4826 x MAD) of the last fit."""
+    keep = np.ones(vals.size, bool)
+    for _ in range(3):
+        Ak = A[keep]
+        coef = np.linalg.solve(Ak.T @ Ak, Ak.T @ vals[keep])  # 3 x 3 normal equations
+        res = vals - A @ coef
+        s = 1.4826 * np.median(np.abs(res[keep])) + 1e-12
+        keep = np.abs(res) < 3 * s
+    return coef
+
+
 def flatten_background(win, saturated=None):
     """Divide by a plane fitted to the background pixels; returns (flat window, noise sigma).
 
@@ -283,14 +296,7 @@ def flatten_background(win, saturated=None):
     bgmask = sm > threshold_otsu(sm)
     rr, cc = np.nonzero(bgmask)
     A = np.column_stack([np.ones(rr.size), rr / win.shape[0], cc / win.shape[1]])
-    vals = sm[bgmask]
-    keep = np.ones(vals.size, bool)
-    for _ in range(3):
-        Ak = A[keep]
-        coef = np.linalg.solve(Ak.T @ Ak, Ak.T @ vals[keep])  # 3 x 3 normal equations
-        res = vals - A @ coef
-        s = 1.4826 * np.median(np.abs(res[keep])) + 1e-12
-        keep = np.abs(res) < 3 * s
+    coef = clipped_plane_fit(A, sm[bgmask])
     R, C = np.mgrid[0 : win.shape[0], 0 : win.shape[1]]
     plane = coef[0] + coef[1] * R / win.shape[0] + coef[2] * C / win.shape[1]
     flat = win / plane

@@ -32,6 +32,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from pipeline.tem.edges import clipped_plane_fit
+
 __all__ = ["vacuum_flattening"]
 
 LAYER_MAX_NM = 25.0  # thickest layer that may dim the window's background (the issue's DLC: 2-20 nm)
@@ -51,17 +53,8 @@ def _plane_terms(rr, cc, shape):
 
 
 def _plane_fit(vals, rr, cc, shape):
-    """Plane (``_plane_terms``) fitted to ``vals`` with the 3-sigma clipping of
-    ``edges.flatten_background``."""
-    A = _plane_terms(rr, cc, shape)
-    keep = np.ones(vals.size, bool)
-    for _ in range(3):
-        Ak = A[keep]
-        coef = np.linalg.solve(Ak.T @ Ak, Ak.T @ vals[keep])
-        res = vals - A @ coef
-        s = 1.4826 * np.median(np.abs(res[keep])) + 1e-12
-        keep = np.abs(res) < 3 * s
-    return coef
+    """Plane (``_plane_terms``) fitted to ``vals`` as ``edges.flatten_background`` fits its own."""
+    return clipped_plane_fit(_plane_terms(rr, cc, shape), vals)
 
 
 def _region_blocks(img, bounds, px):
