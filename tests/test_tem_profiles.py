@@ -387,6 +387,96 @@ def test_a_dim_band_round_the_tip_is_not_taken_for_the_vacuum(dimming):
     assert "faint layer" in info["note"]
 
 
+def _dlc_tip_in_a_clipped_vacuum(layer="DLC"):
+    """Image 48 of the DLC set (``bench_tem_independent`` seed0 3000): an 11.5 nm DLC layer at 12 % of
+    the core's contrast in a 16-bit image whose vacuum is clipped (half the image at full scale), 1.4 um
+    underfocus, 0.43 nm px (wave-optical simulator, parameters written out)."""
+    from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
+
+    parts = (
+        ParticleSpec(1.248e-07, 206.9, (1.163e-08, 6.994e-09, 7.513e-09), 0.5, 0.0, "shank"),
+        ParticleSpec(5.473e-08, 171.1, (3.753e-09, 3.302e-09, 5.542e-09), 0.5, 0.0, "shank"),
+    )
+    return TemWaveParams(
+        n=2.584, R=2.552e-08, S=1.810, z_join=2.456e-08, shank_half_angle_deg=12.94, blend_length=1.043e-08,
+        asymmetry=0.02437, layer=layer, layer_thickness=1.148e-08, core_absorption_length_200kv=6.567e-08,
+        layer_contrast=0.1157, contamination_contrast=0.1433, particles=parts, pixel_size=4.276e-10,
+        shape=(384, 384), apex_px=(297.8, 178.2), rotation_deg=-7.577, kv=253.3, defocus=-1.425e-06, cs=0.001204,
+        aperture=0.005244, illumination_angle=6.313e-05, cc=0.001352, energy_spread_ev=0.4927, snr=27.38, bits=16,
+        background_level=1.162, float_gain=3.811, offset=199.9, read_noise=5.198, psf_sigma=0.6984,
+        psf_tail_weight=0.001132, psf_tail_length=3.908, illumination_gradient=0.05429, gradient_angle_deg=272.3,
+        vignetting=0.00238, seed=3048,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("layer", ["DLC", "none"])
+def test_a_layer_hidden_by_a_clipped_vacuum_is_found_by_its_fringe(tmp_path, layer):
+    """The layer transmits more than full scale / vacuum, so it reads full scale like the vacuum; the
+    fit stopped at the core, 10.5 nm inside, and the pull-off was 29 % off, outside its interval.  Its
+    outer surface's dark Fresnel fringe, a line of unclipped pixels beyond a clipped band, now moves the
+    edge out (``clipped_layer``); the uncoated tip in the same clipped vacuum shows no such line."""
+    import h5py
+
+    from pipeline.synth.tem_wave import simulate, write_image
+    from pipeline.synth.tem_wave_truth import evaluate_file
+    from pipeline.tem.io import write_profile_h5
+    from pipeline.tem.profiles import extract_profile
+    from pipeline.tem.reading import read_tem_image
+
+    p = _dlc_tip_in_a_clipped_vacuum(layer)
+    img, truth = simulate(p)
+    write_image(tmp_path / "img.tif", img, p.pixel_size)
+    g = evaluate_file(tmp_path / "img.tif", truth)
+    assert not g["lost"], g["lost_reason"]
+    assert g["edge_rms"] < 0.6 * NM and abs(g["pulloff_error"]) < 0.15  # DLC: was 10.5 nm and 29 %
+    assert abs(g["dn"]) <= 2 * g["sigma_n"]
+    prof = extract_profile(read_tem_image(tmp_path / "img.tif", None))
+    cl = prof.edge_model.get("clipped_layer") or {}
+    assert cl.get("found", False) == (layer == "DLC")
+    if layer == "DLC":
+        assert abs(cl["thickness"] - p.layer_thickness) < 2 * cl["thickness_sd"]
+        assert any("Fresnel fringe" in f for f in prof.edge_model["global_flags"])
+        write_profile_h5(tmp_path / "p.h5", read_tem_image(tmp_path / "img.tif", None), prof)
+        with h5py.File(tmp_path / "p.h5") as f:
+            assert f["edge_model/clipped_layer"].attrs["found"]
+            assert f["edge_model/clipped_layer/thickness"].attrs["units"] == "m"
+
+
+def _vignetted_tip(apex, band_dimming):
+    """A 1024 px image at 0.129 nm px: a cone-and-sphere tip (22 deg half-angle, 10 nm radius, apex at
+    ``apex`` (row, col) pointing down) in a 20 nm light layer dimming the vacuum by ``band_dimming``,
+    under a 10 % radial vignetting centred on the image (helper-5's review); the window as
+    ``profiles._window_and_contour`` cuts it (the tip up to 1.3 x 20 nm + 24 px)."""
+    px_nm, ha = 0.129, np.radians(22.0)
+    R, C = np.mgrid[0:1024, 0:1024].astype(float)
+    illumination = 1.0 - 0.1 * ((R / 1023 - 0.5) ** 2 + (C / 1023 - 0.5) ** 2) / 0.5
+    z, x, rp = apex[0] - R, np.abs(C - apex[1]), 10 / px_nm
+    d = np.where(z - rp > 0, (x - z * np.tan(ha)) * np.cos(ha), np.hypot(x, z - rp) - rp)
+    body = np.where(d < 0, 0.3, np.where(d < 20 / px_nm, 1.0 - band_dimming, 1.0))
+    img = illumination * body + np.random.default_rng(1).normal(0.0, 0.02, R.shape)
+    hpx = 20 / px_nm
+    half = int(1.3 * hpx * np.tan(ha) + 10 / px_nm) + 24
+    return img, (int(apex[0] - 1.3 * hpx) - 24, apex[0] + 24, max(0, apex[1] - half), min(1024, apex[1] + half))
+
+
+@pytest.mark.parametrize("apex", [(640, 478), (850, 850)])
+def test_vignetting_is_not_taken_for_a_layer(apex):
+    """The far vacuum's plane extrapolated to the tip carries the vignetting's curvature (it read
+    -3.1 to +1.5 % off the window's plane on these uncoated tips, and a 3 % layer as -0.1 to +4.7 %);
+    the quadratic surface that decides reads the no-layer tip within 0.5 % and the layer within
+    0.5 % of its 3 %, so the one is left alone and the other flattened on the vacuum."""
+    from pipeline.tem.edges import flatten_background
+    from pipeline.tem.vacuum_level import vacuum_flattening
+
+    for dimming in (0.0, 0.03):
+        img, (r0, r1, c0, c1) = _vignetted_tip(apex, dimming)
+        win = img[r0:r1, c0:c1]
+        flat, _ = flatten_background(win)
+        out, info = vacuum_flattening(img, (r0, r1, c0, c1), win, flat, 0.129e-9)
+        assert abs(info["gain"] - dimming) < 0.005, (dimming, info)
+        assert info["used"] == (dimming > 0)
+
+
 def _faint_thick_layer_on_a_reference():
     """Interval 0 (the paraboloidal reference) of the end-to-end study's tip 1043
     (``bench_wear_test_wave``): a 19.7 nm DLC layer at 9.6 % of the core's contrast, 0.129 nm px,

@@ -271,12 +271,13 @@ def saturated_pixels(win, min_fraction=SATURATED_FRACTION):
 
 
 def clipped_plane_fit(A, vals):
-    """Least-squares coefficients of ``A @ coef`` ~ ``vals`` (a plane: columns 1, row, col), refitted
-    three times on the values within 3 robust SDs (1.4826 x MAD) of the last fit."""
+    """Least-squares coefficients of ``A @ coef`` ~ ``vals`` (a plane: columns 1, row, col; or any
+    surface linear in its coefficients), refitted three times on the values within 3 robust SDs
+    (1.4826 x MAD) of the last fit."""
     keep = np.ones(vals.size, bool)
     for _ in range(3):
         Ak = A[keep]
-        coef = np.linalg.solve(Ak.T @ Ak, Ak.T @ vals[keep])  # 3 x 3 normal equations
+        coef = np.linalg.solve(Ak.T @ Ak, Ak.T @ vals[keep])  # normal equations (3 x 3 for a plane)
         res = vals - A @ coef
         s = 1.4826 * np.median(np.abs(res[keep])) + 1e-12
         keep = np.abs(res) < 3 * s

@@ -2,7 +2,8 @@
 (:func:`read_profile`, used by stage 2): the only place the profile file's layout is spelled.
 
 Profile file layout: /image, /edge, /axis, /profile/{left,right,combined} (r, z, [flank],
-[offset_basis, normal_rz]; /profile/offset_cov), /asymmetry, /edge_model (/edge_model/faint_layer).
+[offset_basis, normal_rz]; /profile/offset_cov), /asymmetry, /edge_model (/edge_model/faint_layer,
+/edge_model/clipped_layer).
 """
 
 from __future__ import annotations
@@ -96,7 +97,8 @@ def _write_edge_model(f, image, profile):
     w(g, "rms_intensity", em["rms_intensity"], "1", "RMS intensity residual relative to the background")
     w(g, "n_rejected", em["n_rejected"], "1", "edge points rejected")
     g.attrs["refine"] = em.get("refine", "normals")
-    # the vacuum beyond 30 nm of the tip over the window's background plane, - 1 (pipeline.tem.vacuum_level)
+    # the vacuum beyond 30 nm of the tip (its quadratic surface) over the window's background plane next to
+    # the tip, - 1 (pipeline.tem.vacuum_level)
     g.attrs["vacuum_gain"] = float(em.get("vacuum_gain", np.nan))
     flags = list(em.get("global_flags", []))
     from pipeline.tem.silhouette_fit import edge_not_fitted
@@ -114,6 +116,8 @@ def _write_edge_model(f, image, profile):
         _write_coating_test(g, ct, image.pixel_size)
     if em.get("faint_layer"):
         _write_faint_layer(g, em["faint_layer"])
+    if em.get("clipped_layer"):
+        _write_clipped_layer(g, em["clipped_layer"])
     if em.get("global_fringe"):
         _write_fringe(g, em["global_fringe"], image.pixel_size)
     if "global_chi2_red" in em:
@@ -182,6 +186,23 @@ def _write_coating_test(g, ct, px):
             "largest outward edge shift of a light layer that fits within the threshold of none "
             "(half of it is added to the edge covariance as a common offset SD)",
         )
+
+
+def _write_clipped_layer(g, cl):
+    """Group /edge_model/clipped_layer: the test for a light layer a clipped vacuum hides, seen by its
+    outer surface's Fresnel fringe beyond the edge (``pipeline.tem.clipped_layer``); ``note`` says it."""
+    w = h5io.write_dataset
+    sg = h5io.create_group(g, "clipped_layer", description="light layer hidden by a clipped vacuum: its outer fringe")
+    sg.attrs["found"] = bool(cl.get("found", False))
+    sg.attrs["note"] = cl.get("note", "")
+    for key, what in (
+        ("thickness", "distance of the fringe beyond the fitted (core's) edge: the edge was moved out by it"),
+        ("thickness_sd", "its standard error (in the edge covariance)"),
+        ("left", "the distance on the left flank"),
+        ("right", "the distance on the right flank"),
+    ):
+        if key in cl:
+            w(sg, key, cl[key], "m", what)
 
 
 def _write_faint_layer(g, fl):

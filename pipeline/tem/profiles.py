@@ -119,8 +119,8 @@ def _window_and_contour(img, coarse, hpx, path, px, background=None):
         except _Fail as exc:
             raise _fail(path, exc) from None
         flat, vac = vacuum_flattening(img, (r0, r1, c0, c1), win, flat, px)
-        if vac["used"]:  # the noise in units of the vacuum read there (per square root of the level if clipped)
-            noise = noise / (1.0 + vac["gain"]) ** (1.0 if saturated is None else 0.5)
+        if vac["used"]:  # the noise in units of the vacuum's plane (per square root of the level if clipped)
+            noise = noise / (1.0 + vac["plane_gain"]) ** (1.0 if saturated is None else 0.5)
         if background is not None:
             background.clear()
             background.update(vac)
@@ -238,13 +238,46 @@ def _note_background(extra, background):
         extra["global_flags"] = list(extra.get("global_flags", [])) + [background["note"]]
 
 
-def _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty):
+def _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty, saturated=False):
     """The faint-layer test after the global fit, and where it finds the edge to be the core's, the
-    move out to the layer (``_outer_from_layer``). Returns (points, frame, uncertainty)."""
+    move out to the layer (``_outer_from_layer``); where the window is ``saturated`` (a clipped
+    detector), the test for a layer the clipped vacuum hides (``_outer_from_fringe``). Returns (points,
+    frame, uncertainty)."""
     extra["faint_layer"] = _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra)
     if extra["faint_layer"].get("edge_is_core"):
         return _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty)
+    if saturated:
+        return _outer_from_fringe(img, origin, pts, frame, hpx, px, extra, uncertainty)
     return pts, frame, uncertainty
+
+
+def _outer_from_fringe(img, origin, pts, frame, hpx, px, extra, uncertainty):
+    """Where a clipped vacuum hides a light layer whose outer surface shows as a Fresnel fringe beyond
+    the edge (``clipped_layer``): the edge moved out by the fringe's distance, whose standard error joins
+    the edge covariance as one more basis column (a common offset). Returns (points, frame, uncertainty)."""
+    from pipeline.tem.clipped_layer import fringe_beyond_the_edge
+    from pipeline.tem.outer_layer import move_edge_out
+
+    clipped = saturated_pixels(np.asarray(img))
+    if clipped is None:
+        return pts, frame, uncertainty
+    fr = fringe_beyond_the_edge(img, origin, pts, frame, px, clipped)
+    extra["clipped_layer"] = {k: v for k, v in fr.items() if k not in ("profiles", "distances")}
+    if not fr["found"]:
+        return pts, frame, uncertainty
+    basis = uncertainty[0] if uncertainty is not None else None
+    new_pts, new_basis, normals, _ = move_edge_out(pts, frame, fr["thickness"] / px, basis)
+    if uncertainty is not None:
+        K = uncertainty[1].shape[0]
+        cov = np.zeros((K + 1, K + 1))
+        cov[:K, :K] = uncertainty[1]
+        cov[K, K] = (fr["thickness_sd"] / px) ** 2
+        uncertainty = (np.column_stack([new_basis, np.ones(len(new_pts))]), cov, normals)
+    extra["clipped_layer"]["note"] = (
+        fr["note"] + "; the edge is moved out by that distance, its SE joins the edge covariance"
+    )
+    extra["global_flags"] = list(extra.get("global_flags", [])) + [extra["clipped_layer"]["note"]]
+    return new_pts, _symmetry_frame(new_pts, frame, hpx), uncertainty
 
 
 def _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty):
@@ -286,6 +319,14 @@ def _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncer
     )
     extra["global_flags"] = list(extra.get("global_flags", [])) + [ol["note"]]
     return new_pts, _symmetry_frame(new_pts, frame, hpx), uncertainty
+
+
+def _core_edge_in_image(extra, frame, origin, flipped, n_rows):
+    """Where the edge was moved out to a faint layer, the fitted (core's) edge in image px, for the
+    figure (``outer_layer["core_edge_px"]``)."""
+    ol = (extra.get("faint_layer") or {}).get("outer_layer") or {}
+    if "_core_pts" in ol:
+        ol["core_edge_px"] = _in_image(ol.pop("_core_pts"), frame, origin, flipped, n_rows)[0]
 
 
 def _edge_uncertainty(uncertainty, keep, x, px, frame):
@@ -344,7 +385,9 @@ def extract_profile(
     )
     _note_background(extra, background)
     if extra.get("refine") == "global":
-        pts, frame, uncertainty = _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty)
+        pts, frame, uncertainty = _beyond_the_edge(
+            img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty, saturated is not None
+        )
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
@@ -353,9 +396,7 @@ def extract_profile(
     basis, cov, normal_rz = _edge_uncertainty(uncertainty, keep, x, px, frame)
     pts_img, apex_img, axis, angle = _in_image(pts, frame, origin, flipped, image.data.shape[0])
     _check_apex_found(apex_img, image.data.shape, x, z, hpx, path)
-    ol = (extra.get("faint_layer") or {}).get("outer_layer") or {}
-    if "_core_pts" in ol:
-        ol["core_edge_px"] = _in_image(ol.pop("_core_pts"), frame, origin, flipped, image.data.shape[0])[0]
+    _core_edge_in_image(extra, frame, origin, flipped, image.data.shape[0])
     return TipProfile(
         pixel_size=px,
         pixel_size_source=image.source,
