@@ -442,6 +442,33 @@ def test_a_layer_hidden_by_a_clipped_vacuum_is_found_by_its_fringe(tmp_path, lay
             assert f["edge_model/clipped_layer/thickness"].attrs["units"] == "m"
 
 
+def test_an_edge_inside_material_a_clipped_vacuum_half_hides_is_the_core(tmp_path):
+    """DLC-set image 62 (``bench_tem_independent`` seed0 3000): a 13.7 nm DLC layer at 21 % of the core's
+    contrast, 0.1 um underfocus (no fringe to speak of), 16-bit with the vacuum clipped.  The layer's
+    inner part reads below full scale, its outer part full scale like the vacuum: the fit stopped 10.4 nm
+    inside and the pull-off was 58 % off, outside its interval.  Unclipped pixels run on 4.3-4.5 nm beyond
+    that edge on both flanks, so the profile is now marked the core's (stage 2: ``edge_is_core``,
+    unusable) and says why (``clipped_layer``)."""
+    from pipeline.synth.tem_wave import TemWaveParams, simulate, write_image
+    from pipeline.synth.tem_wave_truth import evaluate_file
+
+    p = TemWaveParams(
+        n=5.076, R=1.092e-08, S=1.805, z_join=2.864e-08, shank_half_angle_deg=11.62, blend_length=1.488e-08,
+        asymmetry=0.0, layer="DLC", layer_thickness=1.374e-08, core_absorption_length_200kv=5.155e-08,
+        layer_contrast=0.207, contamination_contrast=0.2822, particles=(), pixel_size=4.762e-10, shape=(256, 256),
+        apex_px=(182.2, 151.1), rotation_deg=3.695, kv=126.1, defocus=-1.088e-07, cs=0.001316, aperture=0.01064,
+        illumination_angle=3.911e-05, cc=0.001212, energy_spread_ev=0.3626, snr=28.47, bits=16,
+        background_level=1.195, float_gain=4.728, offset=276.5, read_noise=7.66, psf_sigma=0.35,
+        psf_tail_weight=0.06236, psf_tail_length=3.081, illumination_gradient=0.006588, gradient_angle_deg=60.89,
+        vignetting=0.03727, seed=3062,
+    )  # fmt: skip
+    img, truth = simulate(p)
+    write_image(tmp_path / "img.tif", img, p.pixel_size)
+    g = evaluate_file(tmp_path / "img.tif", truth)
+    assert g["lost"] and "edge_is_core" in g["lost_reason"], (g["lost_reason"], g["edge_rms"])
+    assert any("whose outer end the clipped vacuum hides" in f for f in g["edge_flags"])
+
+
 def _vignetted_tip(apex, band_dimming):
     """A 1024 px image at 0.129 nm px: a cone-and-sphere tip (22 deg half-angle, 10 nm radius, apex at
     ``apex`` (row, col) pointing down) in a 20 nm light layer dimming the vacuum by ``band_dimming``,

@@ -38,7 +38,8 @@ Flags: "n_below_1.5", "residual_above_pixel" (RMS residual > 2 pixel sizes),
 "few_points" (< 12 points), "not_converged", "n_at_bound", "edge_turns_back" (more than a
 quarter of the window's points turn back), "edge_is_core" (stage 1 saw a faint outer layer beyond
 the fitted edge on each flank and could not read its thickness at the apex: the profile is the core's,
-``pipeline.tem.faint_layer``; where it could, the edge was moved out by it, ``pipeline.tem.outer_layer``),
+``pipeline.tem.faint_layer``; where it could, the edge was moved out by it, ``pipeline.tem.outer_layer``; or
+saw the edge inside material whose end a clipped vacuum hides, ``pipeline.tem.clipped_layer``),
 "edge_not_fitted" (stage 1's silhouette fit found no sharp edge in its band: the edge is its starting
 iso-contour, not a fit to the image).
 """

@@ -62,9 +62,10 @@ def run_fit(profile_h5, out_h5, *, fit_height=6e-9, S=1.0, tip="", interval="") 
 
 
 EDGE_IS_CORE_NOTE = (
-    "edge_is_core: stage 1 saw a faint outer layer beyond the fitted edge on each flank alone, so the "
-    "profile is the core's, not the outer surface that touches the sample; the shape is not used "
-    "(the layer's thickness could not be read at the apex to move the edge out: see the stage-1 notes)"
+    "edge_is_core: stage 1 saw an outer layer beyond the fitted edge (a faint one on each flank alone, or "
+    "one a clipped vacuum hides), so the profile is the core's, not the outer surface that touches the "
+    "sample; the shape is not used (the layer's thickness could not be read to move the edge out: see the "
+    "stage-1 notes)"
 )
 
 

@@ -194,12 +194,14 @@ def _write_clipped_layer(g, cl):
     w = h5io.write_dataset
     sg = h5io.create_group(g, "clipped_layer", description="light layer hidden by a clipped vacuum: its outer fringe")
     sg.attrs["found"] = bool(cl.get("found", False))
+    sg.attrs["edge_is_core"] = bool(cl.get("edge_is_core", False))
     sg.attrs["note"] = cl.get("note", "")
     for key, what in (
         ("thickness", "distance of the fringe beyond the fitted (core's) edge: the edge was moved out by it"),
         ("thickness_sd", "its standard error (in the edge covariance)"),
         ("left", "the distance on the left flank"),
         ("right", "the distance on the right flank"),
+        ("band", "where no fringe: how far unclipped pixels run on beyond the edge (the shorter flank's)"),
     ):
         if key in cl:
             w(sg, key, cl[key], "m", what)

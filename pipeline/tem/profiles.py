@@ -263,6 +263,9 @@ def _outer_from_fringe(img, origin, pts, frame, hpx, px, extra, uncertainty):
         return pts, frame, uncertainty
     fr = fringe_beyond_the_edge(img, origin, pts, frame, px, clipped)
     extra["clipped_layer"] = {k: v for k, v in fr.items() if k not in ("profiles", "distances")}
+    if fr.get("edge_is_core"):  # stage 2 then flags the shape unusable (``edge_is_core``), in these words
+        extra["faint_layer"]["edge_is_core"] = True
+        extra["global_flags"] = list(extra.get("global_flags", [])) + [fr["note"]]
     if not fr["found"]:
         return pts, frame, uncertainty
     basis = uncertainty[0] if uncertainty is not None else None
