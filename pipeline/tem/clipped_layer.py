@@ -76,13 +76,18 @@ def _vacuum_share(share, ds_nm):
     return np.nanmedian(share[vac]) if np.isfinite(share[vac]).any() else np.nan
 
 
+def _unclipped_run(share, base):
+    """Where one flank's ``share`` profile stands well above the far vacuum's ``base`` (bool per distance)."""
+    return np.nan_to_num(share, nan=0.0) >= max(MIN_SHARE, base + MIN_RISE)
+
+
 def _band(share, ds_nm):
     """How far (nm) unclipped pixels run on from the edge in one flank's ``share`` profile (0 where the
     far vacuum is not clipped: no such reading)."""
     base = _vacuum_share(share, ds_nm)
     if not base <= MAX_VACUUM_SHARE:
         return 0.0
-    high = np.nan_to_num(share, nan=0.0) >= max(MIN_SHARE, base + MIN_RISE)
+    high = _unclipped_run(share, base)
     j = int(np.argmin(high)) if not high.all() else high.size
     return float(ds_nm[j]) if j < ds_nm.size else float(ds_nm[-1])
 
@@ -93,7 +98,7 @@ def _fringe(share, ds_nm):
     base = _vacuum_share(share, ds_nm)
     if not base <= MAX_VACUUM_SHARE:
         return None
-    high = np.nan_to_num(share, nan=0.0) >= max(MIN_SHARE, base + MIN_RISE)
+    high = _unclipped_run(share, base)
     low = np.nan_to_num(share, nan=1.0) <= base + GAP_RISE
     # the edge's own run (its blur), then clipped pixels over MIN_GAP_NM at least, then the fringe
     i = 0

@@ -226,8 +226,24 @@ def _faint_layer(img, origin, pts, frame, edge_model, hpx, px, extra):
     model = (extra.get("coating_test") or {}).get("model", "single")
     out = faint_layer_test(img, origin, pts, frame, edge_model["sigma_px"], k_body, hpx, px, coat_model=model)
     if out.get("found"):
-        extra["global_flags"] = list(extra.get("global_flags", [])) + [out["note"]]
+        _add_flag(extra, out["note"])
     return out
+
+
+def _add_flag(extra, note):
+    """``note`` appended to the edge model's flags in words (``extra["global_flags"]``)."""
+    extra["global_flags"] = list(extra.get("global_flags", [])) + [note]
+
+
+def _with_offset_columns(uncertainty, new_basis, normals, columns, sds):
+    """The edge uncertainty (basis, covariance, normals) of an edge moved out to a layer: the moved
+    points' basis ``new_basis`` and ``normals``, plus one basis column per entry of ``columns`` (each
+    point's weight of an independent offset) with standard deviation ``sds`` (px)."""
+    K = uncertainty[1].shape[0]
+    cov = np.zeros((K + len(sds), K + len(sds)))
+    cov[:K, :K] = uncertainty[1]
+    cov[K:, K:] = np.diag(np.square(sds))
+    return np.column_stack([new_basis, *columns]), cov, normals
 
 
 def _note_background(extra, background):
@@ -235,7 +251,7 @@ def _note_background(extra, background):
     where the window was flattened on the vacuum beyond a faint layer, a flag in words."""
     extra["vacuum_gain"] = float(background.get("gain", np.nan))
     if background.get("used"):
-        extra["global_flags"] = list(extra.get("global_flags", [])) + [background["note"]]
+        _add_flag(extra, background["note"])
 
 
 def _beyond_the_edge(img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty, saturated=False):
@@ -265,21 +281,19 @@ def _outer_from_fringe(img, origin, pts, frame, hpx, px, extra, uncertainty):
     extra["clipped_layer"] = {k: v for k, v in fr.items() if k not in ("profiles", "distances")}
     if fr.get("edge_is_core"):  # stage 2 then flags the shape unusable (``edge_is_core``), in these words
         extra["faint_layer"]["edge_is_core"] = True
-        extra["global_flags"] = list(extra.get("global_flags", [])) + [fr["note"]]
+        _add_flag(extra, fr["note"])
     if not fr["found"]:
         return pts, frame, uncertainty
     basis = uncertainty[0] if uncertainty is not None else None
     new_pts, new_basis, normals, _ = move_edge_out(pts, frame, fr["thickness"] / px, basis)
     if uncertainty is not None:
-        K = uncertainty[1].shape[0]
-        cov = np.zeros((K + 1, K + 1))
-        cov[:K, :K] = uncertainty[1]
-        cov[K, K] = (fr["thickness_sd"] / px) ** 2
-        uncertainty = (np.column_stack([new_basis, np.ones(len(new_pts))]), cov, normals)
+        uncertainty = _with_offset_columns(
+            uncertainty, new_basis, normals, [np.ones(len(new_pts))], [fr["thickness_sd"] / px]
+        )
     extra["clipped_layer"]["note"] = (
         fr["note"] + "; the edge is moved out by that distance, its SE joins the edge covariance"
     )
-    extra["global_flags"] = list(extra.get("global_flags", [])) + [extra["clipped_layer"]["note"]]
+    _add_flag(extra, extra["clipped_layer"]["note"])
     return new_pts, _symmetry_frame(new_pts, frame, hpx), uncertainty
 
 
@@ -298,7 +312,7 @@ def _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncer
     fl["outer_layer"] = ol
     if not ol["usable"]:
         ol["note"] = f"edge not moved out to the layer: {ol['note']}"
-        extra["global_flags"] = list(extra.get("global_flags", [])) + [ol["note"]]
+        _add_flag(extra, ol["note"])
         return pts, frame, uncertainty
     ta, tf = ol["thickness_apex"] / px, ol["thickness_flank"] / px
     _, z = frame.to_tip(pts)
@@ -307,12 +321,8 @@ def _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncer
     new_pts, new_basis, normals, src = move_edge_out(pts, frame, ta + (tf - ta) * w, basis)
     if uncertainty is not None:
         wf = np.interp(src, np.arange(len(w)), w)
-        K = uncertainty[1].shape[0]
-        cov = np.zeros((K + 2, K + 2))
-        cov[:K, :K] = uncertainty[1]
-        cov[K, K] = (ol["thickness_apex_sd"] / px) ** 2
-        cov[K + 1, K + 1] = (ol["thickness_flank_sd"] / px) ** 2
-        uncertainty = (np.column_stack([new_basis, 1.0 - wf, wf]), cov, normals)
+        sds = [ol["thickness_apex_sd"] / px, ol["thickness_flank_sd"] / px]
+        uncertainty = _with_offset_columns(uncertainty, new_basis, normals, [1.0 - wf, wf], sds)
     fl["edge_is_core"] = False
     ol["_core_pts"] = np.asarray(pts, float)  # the fitted (core's) edge, window px: for the figure
     ol["note"] = (
@@ -320,7 +330,7 @@ def _outer_from_layer(img, origin, pts, frame, edge_model, hpx, px, extra, uncer
         "is the fitted edge plus this layer, whose own edge is too faint to fit; the thicknesses' SEs join "
         "the edge covariance"
     )
-    extra["global_flags"] = list(extra.get("global_flags", [])) + [ol["note"]]
+    _add_flag(extra, ol["note"])
     return new_pts, _symmetry_frame(new_pts, frame, hpx), uncertainty
 
 
