@@ -131,6 +131,7 @@ def run_one(args):
             "apex_dz",
             "coating_found",
             "blur_sigma",
+            "dim_zone",
         ):
             k, v = k + "_nm", v * 1e9
         row[k] = v

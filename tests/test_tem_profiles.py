@@ -326,6 +326,17 @@ def test_the_axis_line_through_cut_midpoints_rejects_a_block_of_contaminated_cut
     assert abs(_robust_slope(h, blocked, r) - 0.1) < 0.005
 
 
+def _graded_wave_image(tmp_path, p):
+    """Render the independent wave-optical image of parameters ``p``, save it as ``tmp_path/img.tif``
+    and grade the stage's profile of it against the true silhouette (``tem_wave_truth.evaluate_file``)."""
+    from pipeline.synth.tem_wave import simulate, write_image
+    from pipeline.synth.tem_wave_truth import evaluate_file
+
+    img, truth = simulate(p)
+    write_image(tmp_path / "img.tif", img, p.pixel_size)
+    return evaluate_file(tmp_path / "img.tif", truth)
+
+
 def test_a_light_layer_thicker_than_the_window_margins_does_not_hide_the_edge(tmp_path):
     """Interval 1 of the end-to-end study's tip 1019 (wave-optical simulator, parameters written
     out): an 18 nm DLC layer at 10 % of the core's contrast, 0.355 nm px.  The coarse mask holds
@@ -333,8 +344,7 @@ def test_a_light_layer_thicker_than_the_window_margins_does_not_hide_the_edge(tm
     distance within which it is taken (24 px), and the stage raised "no tip in the image" on a clear
     image.  The window now grows (and that distance with it) until the contour is found; the edge is
     the outer surface."""
-    from pipeline.synth.tem_wave import TemWaveParams, simulate, write_image
-    from pipeline.synth.tem_wave_truth import evaluate_file
+    from pipeline.synth.tem_wave import TemWaveParams
 
     p = TemWaveParams(
         n=2.793, R=1.434e-08, S=1.499, z_join=2.177e-08, shank_half_angle_deg=12.57, blend_length=3.302e-08,
@@ -345,9 +355,7 @@ def test_a_light_layer_thicker_than_the_window_margins_does_not_hide_the_edge(tm
         offset=50.1, read_noise=5.997, psf_sigma=0.6816, psf_tail_weight=0.03124, psf_tail_length=4.394,
         illumination_gradient=0.0181, gradient_angle_deg=21.67, vignetting=0.09204, seed=7016305,
     )  # fmt: skip
-    img, truth = simulate(p)
-    write_image(tmp_path / "img.tif", img, p.pixel_size)
-    g = evaluate_file(tmp_path / "img.tif", truth)
+    g = _graded_wave_image(tmp_path, p)
     assert not g["lost"], g["lost_reason"]
     assert g["edge_rms"] < 0.3 * NM and abs(g["dn"]) <= 2 * g["sigma_n"]
 
@@ -417,16 +425,12 @@ def test_a_layer_hidden_by_a_clipped_vacuum_is_found_by_its_fringe(tmp_path, lay
     edge out (``clipped_layer``); the uncoated tip in the same clipped vacuum shows no such line."""
     import h5py
 
-    from pipeline.synth.tem_wave import simulate, write_image
-    from pipeline.synth.tem_wave_truth import evaluate_file
     from pipeline.tem.io import write_profile_h5
     from pipeline.tem.profiles import extract_profile
     from pipeline.tem.reading import read_tem_image
 
     p = _dlc_tip_in_a_clipped_vacuum(layer)
-    img, truth = simulate(p)
-    write_image(tmp_path / "img.tif", img, p.pixel_size)
-    g = evaluate_file(tmp_path / "img.tif", truth)
+    g = _graded_wave_image(tmp_path, p)
     assert not g["lost"], g["lost_reason"]
     assert g["edge_rms"] < 0.6 * NM and abs(g["pulloff_error"]) < 0.15  # DLC: was 10.5 nm and 29 %
     assert abs(g["dn"]) <= 2 * g["sigma_n"]
@@ -449,8 +453,7 @@ def test_an_edge_inside_material_a_clipped_vacuum_half_hides_is_the_core(tmp_pat
     inside and the pull-off was 58 % off, outside its interval.  Unclipped pixels run on 4.3-4.5 nm beyond
     that edge on both flanks, so the profile is now marked the core's (stage 2: ``edge_is_core``,
     unusable) and says why (``clipped_layer``)."""
-    from pipeline.synth.tem_wave import TemWaveParams, simulate, write_image
-    from pipeline.synth.tem_wave_truth import evaluate_file
+    from pipeline.synth.tem_wave import TemWaveParams
 
     p = TemWaveParams(
         n=5.076, R=1.092e-08, S=1.805, z_join=2.864e-08, shank_half_angle_deg=11.62, blend_length=1.488e-08,
@@ -462,11 +465,74 @@ def test_an_edge_inside_material_a_clipped_vacuum_half_hides_is_the_core(tmp_pat
         psf_tail_weight=0.06236, psf_tail_length=3.081, illumination_gradient=0.006588, gradient_angle_deg=60.89,
         vignetting=0.03727, seed=3062,
     )  # fmt: skip
-    img, truth = simulate(p)
-    write_image(tmp_path / "img.tif", img, p.pixel_size)
-    g = evaluate_file(tmp_path / "img.tif", truth)
+    g = _graded_wave_image(tmp_path, p)
     assert g["lost"] and "edge_is_core" in g["lost_reason"], (g["lost_reason"], g["edge_rms"])
     assert any("whose outer end the clipped vacuum hides" in f for f in g["edge_flags"])
+
+
+def test_a_faint_layer_the_start_contour_folds_in_is_read_beyond_the_core(tmp_path):
+    """Grid image 14 (``bench_tem_independent``): a 15.4 nm DLC layer at 6.6 % of the core's contrast, in
+    focus, SNR 9.  The iso-level 2 % below the vacuum wandered through the layer's noise and folded (66 %
+    of its points near the apex turn back); the fit followed it and the interval was lost (edge 6.2 nm
+    off).  The fit now starts from the first unfolded lower level (on the core), and the faint-layer test
+    reads the layer beyond it (``start_contour``, ``outer_layer``)."""
+    from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
+
+    parts = (
+        ParticleSpec(8.96e-08, 191.8, (7.71e-09, 3.786e-09, 1.168e-08), 0.5, 0.0, "shank"),
+        ParticleSpec(6.238e-08, 184.2, (5.195e-09, 6.513e-09, 3.261e-09), 0.5, 0.0, "shank"),
+        ParticleSpec(6.854e-08, 11.52, (3.652e-09, 1.101e-08, 1.167e-08), 0.5, 0.0, "shank"),
+    )
+    p = TemWaveParams(
+        n=5.324, R=1.775e-08, S=1.703, z_join=2.692e-08, shank_half_angle_deg=19.62, blend_length=2.645e-08,
+        asymmetry=-0.02869, layer="DLC", layer_thickness=1.543e-08, core_absorption_length_200kv=6.058e-08,
+        layer_contrast=0.06589, contamination_contrast=0.2472, particles=parts, pixel_size=2.595e-10,
+        shape=(544, 544), apex_px=(398.5, 289), rotation_deg=-8.138, kv=294.3, defocus=-3.717e-08, cs=0.001837,
+        aperture=0.01327, illumination_angle=6.262e-05, cc=0.002069, energy_spread_ev=0.3092, snr=8.845, bits=0,
+        background_level=0.0721, float_gain=19.56, offset=0, read_noise=6.269, psf_sigma=0.6799,
+        psf_tail_weight=0.1384, psf_tail_length=3.033, illumination_gradient=0.06037, gradient_angle_deg=59.19,
+        vignetting=0.08239, seed=14,
+    )  # fmt: skip
+    g = _graded_wave_image(tmp_path, p)
+    assert not g["lost"], g["lost_reason"]
+    assert g["edge_rms"] < 0.6 * NM and abs(g["pulloff_error"]) < 0.1  # was 6.2 nm, lost
+    assert abs(g["dn"]) <= 2 * g["sigma_n"]
+    assert any("edge moved out by the faint layer's thickness" in f for f in g["edge_flags"])
+
+
+def test_a_fold_beyond_the_edge_that_no_layer_test_reads_widens_the_edge(tmp_path):
+    """Grid image 98: a 4.8 nm DLC layer at 5.6 % of the core's contrast, in focus.  The first start
+    contour folds (43 %) in the layer; from the lower level the fit finds the core, 4.6 nm inside, and the
+    layer is too faint for the faint-layer test.  The folded contour lies a median 2.9 nm beyond that
+    edge: the edge covariance gains a common offset of that SD, so the edge's bias and the pull-off are
+    covered, and a flag says why."""
+    from pipeline.synth.tem_wave import TemWaveParams
+    from pipeline.tem.io import write_profile_h5
+    from pipeline.tem.profiles import extract_profile
+    from pipeline.tem.reading import read_tem_image
+
+    p = TemWaveParams(
+        n=5.775, R=3.099e-08, S=1.072, z_join=1.44e-08, shank_half_angle_deg=11.3, blend_length=2.05e-08,
+        asymmetry=0.0, layer="DLC", layer_thickness=4.788e-09, core_absorption_length_200kv=3.852e-08,
+        layer_contrast=0.05587, contamination_contrast=0.1794, particles=(), pixel_size=2.69e-10, shape=(768, 768),
+        apex_px=(547.1, 390.5), rotation_deg=4.993, kv=155.3, defocus=-4.452e-08, cs=0.0009188, aperture=0.01105,
+        illumination_angle=0.0002656, cc=0.002335, energy_spread_ev=0.4267, snr=12.12, bits=0,
+        background_level=0.7216, float_gain=10.05, offset=0, read_noise=4.766, psf_sigma=0.3727,
+        psf_tail_weight=0.006378, psf_tail_length=2.986, illumination_gradient=0.006764, gradient_angle_deg=45.64,
+        vignetting=0.09537, seed=98,
+    )  # fmt: skip
+    g = _graded_wave_image(tmp_path, p)
+    assert not g["lost"], g["lost_reason"]
+    assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"] and g["pulloff_covered_mc"]  # 4.6 nm inside
+    assert any("folds back in something faint" in f for f in g["edge_flags"])
+    image = read_tem_image(tmp_path / "img.tif", None)
+    prof = extract_profile(image)
+    st = prof.edge_model["start_contour"]
+    assert st["fold_share"] > 0.3 and st["start_level"] < st["level"] and 2.5 * NM < st["dim_zone"] < 4.0 * NM
+    write_profile_h5(tmp_path / "p.h5", image, prof)
+    with h5py.File(tmp_path / "p.h5") as f:
+        assert f["edge_model/start_contour/dim_zone"].attrs["units"] == "m"
+        assert "folds back" in f["edge_model/start_contour"].attrs["note"]
 
 
 def _vignetted_tip(apex, band_dimming):
@@ -534,13 +600,9 @@ def test_a_faint_thick_layer_filling_the_window_does_not_pull_the_edge_into_it(t
     iso-level (2 % below the plane) lay inside the layer, and the edge wandered through it: 2.5 nm
     inside the outer surface, the reference's pull-off -49 % (W_A +96 %, outside its interval).  The
     window is now flattened on the vacuum beyond any layer (``vacuum_level``)."""
-    from pipeline.synth.tem_wave import simulate, write_image
-    from pipeline.synth.tem_wave_truth import evaluate_file
 
     p = _faint_thick_layer_on_a_reference()
-    img, truth = simulate(p)
-    write_image(tmp_path / "img.tif", img, p.pixel_size)
-    g = evaluate_file(tmp_path / "img.tif", truth)
+    g = _graded_wave_image(tmp_path, p)
     assert not g["lost"], g["lost_reason"]
     assert g["edge_rms"] < 1.6 * NM and abs(g["pulloff_error"]) < 0.25  # was 2.8 nm and 49 %
     assert abs(g["dn"]) <= 2 * g["sigma_n"]

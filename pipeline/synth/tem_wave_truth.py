@@ -19,7 +19,9 @@ Metrics (SI units):
   error, and whether the reported SD (from cov(n, ln Q)) covers it at 2 sigma, linearly and with
   (n, ln Q) drawn as the inversion draws them (``pulloff_covered_by_samples``);
 - chi2_red: the silhouette fit's reduced chi^2 (how far the image is from the edge model); blur_sigma:
-  its fitted Gaussian blur (m);
+  its fitted Gaussian blur (m); start_fold_share, start_level, dim_zone: its starting contour
+  (``pipeline.tem.start_contour``: the first level's fold share, the level the fit started from, and
+  where the first level folded, its median distance beyond the final edge, m);
 - lost: the interval cannot be used -- the stage raised (reason: its message), or the
   stage-2 fit carries a flag that makes the inversion drop it
   (``pipeline.inversion.UNUSABLE_FIT_FLAGS``), or the n policy rejects it (``clip_n``).
@@ -236,6 +238,9 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
         coating_found=float(em.get("coating_thickness", 0.0)),
         chi2_red=float(em.get("global_chi2_red", float("nan"))),
         blur_sigma=float(em.get("blur_sigma", float("nan"))),
+        start_fold_share=float((em.get("start_contour") or {}).get("fold_share", float("nan"))),
+        start_level=float((em.get("start_contour") or {}).get("start_level", float("nan"))),
+        dim_zone=float((em.get("start_contour") or {}).get("dim_zone", float("nan"))),
         lost=bool(lost_reason(fit)),
         lost_reason=lost_reason(fit),
     )

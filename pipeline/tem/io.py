@@ -3,7 +3,7 @@
 
 Profile file layout: /image, /edge, /axis, /profile/{left,right,combined} (r, z, [flank],
 [offset_basis, normal_rz]; /profile/offset_cov), /asymmetry, /edge_model (/edge_model/faint_layer,
-/edge_model/clipped_layer).
+/edge_model/clipped_layer, /edge_model/start_contour).
 """
 
 from __future__ import annotations
@@ -118,6 +118,8 @@ def _write_edge_model(f, image, profile):
         _write_faint_layer(g, em["faint_layer"])
     if em.get("clipped_layer"):
         _write_clipped_layer(g, em["clipped_layer"])
+    if em.get("start_contour"):
+        _write_start_contour(g, em["start_contour"])
     if em.get("global_fringe"):
         _write_fringe(g, em["global_fringe"], image.pixel_size)
     if "global_chi2_red" in em:
@@ -186,6 +188,19 @@ def _write_coating_test(g, ct, px):
             "largest outward edge shift of a light layer that fits within the threshold of none "
             "(half of it is added to the edge covariance as a common offset SD)",
         )
+
+
+def _write_start_contour(g, st):
+    """Group /edge_model/start_contour: the iso-level the silhouette fit started from, and where the first
+    level folded in something faint, how far beyond the final edge (``pipeline.tem.start_contour``)."""
+    w = h5io.write_dataset
+    sg = h5io.create_group(g, "start_contour", description="the silhouette fit's starting iso-contour")
+    sg.attrs["note"] = st.get("note", "")
+    w(sg, "level", st["level"], "1", "first iso-level, share of the flattened vacuum")
+    w(sg, "fold_share", st["fold_share"], "1", "share of its points near the apex that turn back")
+    w(sg, "start_level", st["start_level"], "1", "the level the fit started from (= level unless it folded)")
+    if "dim_zone" in st:
+        w(sg, "dim_zone", st["dim_zone"], "m", "median distance of the folded first contour beyond the final edge")
 
 
 def _write_clipped_layer(g, cl):

@@ -26,6 +26,7 @@ from pipeline.tem.edges import (
 )
 from pipeline.tem.errors import ApexAtBorderError, NoTipError
 from pipeline.tem.reading import TemImage
+from pipeline.tem.start_contour import DIM_ZONE_NM, clip_height, dim_zone, unfolded_start
 
 __all__ = ["TipProfile", "extract_profile"]
 
@@ -139,7 +140,8 @@ def _window_and_contour(img, coarse, hpx, path, px, background=None):
                 m[side] += grow
             continue
         frame = TipFrame(ca - origin, th)
-        cont = _clip_height(cont, frame, 1.3 * hpx + 8)
+        cont = clip_height(cont, frame, 1.3 * hpx + 8)
+        cont, folded, start = unfolded_start(flat, noise, cont, level, ca - origin, frame, hpx, px)
         hit = dict(
             bottom=r1 < H and (cont[:, 0] >= win.shape[0] - 1.5).any(),
             left=c0 > 0 and (cont[:, 1] <= 0.5).any(),
@@ -152,6 +154,8 @@ def _window_and_contour(img, coarse, hpx, path, px, background=None):
     if len(cont) < 10:
         raise NoTipError(path, "no tip in the image (edge too short near the apex)")
     _check_border(cont, win.shape, frame, hpx, path, r0, c0, H, W)
+    if background is not None:
+        background["start"], background["folded"] = start, folded
     return win, origin, flat, noise, cont, frame, saturated
 
 
@@ -244,6 +248,52 @@ def _with_offset_columns(uncertainty, new_basis, normals, columns, sds):
     cov[:K, :K] = uncertainty[1]
     cov[K:, K:] = np.diag(np.square(sds))
     return np.column_stack([new_basis, *columns]), cov, normals
+
+
+def _fit_from_start(win, flat, noise, cont, frame, fit_args, background):
+    """``_refined_edge`` from the start contour ``cont``; where that was a lower level than the first
+    (``start_contour``) and the fit found no edge there, from the folded first contour after all
+    (``background`` says which). ``fit_args``: (hpx, px, coat_hint, refine, fringe_correction, saturated)."""
+    fit = _refined_edge(win, flat, noise, cont, frame, *fit_args)
+    if background["folded"] is not None and _no_fit(fit[3], fit_args[3]):
+        fit = _refined_edge(win, flat, noise, background["folded"], frame, *fit_args)
+        background["start"].update(start_level=background["start"]["level"], lower_level_not_fitted=True)
+        background["folded"] = None
+    return fit
+
+
+def _no_fit(extra, refine):
+    """True where the silhouette fit found no edge: its body reached none of the pixels (the edge is the
+    starting contour), or the global fit failed and the per-normal fits stood in."""
+    from pipeline.tem.silhouette_fit import edge_not_fitted
+
+    return edge_not_fitted(extra.get("global_flags", [])) or (refine == "global" and extra.get("refine") != "global")
+
+
+def _beyond_the_fold(pts, frame, hpx, px, background, extra, uncertainty):
+    """Where the first start contour folded and a lower level started the fit (``start_contour``): how
+    far the folded contour lies beyond the final edge; more than ``DIM_ZONE_NM`` widens the edge
+    covariance by a common offset of that SD, with a flag in words (not where the edge is already marked
+    the core's). Returns the uncertainty."""
+    start = dict(background.get("start") or {})
+    folded = background.get("folded")
+    if folded is not None:
+        start["dim_zone"] = dim_zone(folded, pts, frame, hpx) * px
+    extra["start_contour"] = start
+    if folded is None or start["dim_zone"] <= DIM_ZONE_NM * 1e-9 or extra.get("faint_layer", {}).get("edge_is_core"):
+        return uncertainty
+    d = start["dim_zone"]
+    note = (
+        f"the iso-level {100 * (1 - start['level']):.0f} % below the vacuum folds back in something faint "
+        f"a median {d * 1e9:.1f} nm beyond the fitted edge that no layer test could read (a coating too faint "
+        f"to fit?): the fit started {100 * (1 - start['start_level']):.0f} % below the vacuum, and the whole "
+        f"edge carries a common uncertainty of {d * 1e9:.1f} nm"
+    )
+    start["note"] = note
+    _add_flag(extra, note)
+    if uncertainty is None:
+        return None
+    return _with_offset_columns(uncertainty, uncertainty[0], uncertainty[2], [np.ones(len(pts))], [d / px])
 
 
 def _note_background(extra, background):
@@ -393,14 +443,14 @@ def extract_profile(
     img = image.data[::-1] if flipped else image.data
     background = {}
     win, origin, flat, noise, cont, frame, saturated = _window_and_contour(img, coarse, hpx, path, px, background)
-    pts, frame, edge_model, extra, uncertainty = _refined_edge(
-        win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction, saturated
-    )
+    fit_args = (hpx, px, coat_hint, refine, fringe_correction, saturated)
+    pts, frame, edge_model, extra, uncertainty = _fit_from_start(win, flat, noise, cont, frame, fit_args, background)
     _note_background(extra, background)
     if extra.get("refine") == "global":
         pts, frame, uncertainty = _beyond_the_edge(
             img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty, saturated is not None
         )
+    uncertainty = _beyond_the_fold(pts, frame, hpx, px, background, extra, uncertainty)
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
@@ -450,20 +500,6 @@ def _edge_level(flat, noise, smooth=2.0):
     ``smooth``-px Gaussian-smoothed image, at least 2 %, so that it follows the
     OUTER surface (lighter coating included)."""
     return 1.0 - max(4.0 * noise / (2.0 * np.sqrt(np.pi) * smooth), 0.02)
-
-
-def _clip_height(cont, frame, hmax):
-    x, z = frame.to_tip(cont)
-    inside = z <= hmax
-    # keep the connected run around the lowest point
-    i0 = int(np.argmin(z))
-    lo = i0
-    while lo > 0 and inside[lo - 1]:
-        lo -= 1
-    hi = i0
-    while hi < len(z) - 1 and inside[hi + 1]:
-        hi += 1
-    return cont[lo : hi + 1]
 
 
 def _check_apex_found(apex_img, shape, x, z, hpx, path, min_points=10):
