@@ -470,6 +470,29 @@ def test_an_edge_inside_material_a_clipped_vacuum_half_hides_is_the_core(tmp_pat
     assert any("whose outer end the clipped vacuum hides" in f for f in g["edge_flags"])
 
 
+@pytest.mark.parametrize("tilt", [0.0, 0.3, -0.5])
+def test_the_dim_zone_is_the_signed_distance_of_the_folded_contour(tilt):
+    """``start_contour.dim_zone``: a contour offset by d along the outward normal of a parabolic edge
+    (tip frame tilted by ``tilt`` rad in the window) lies d beyond it, in whatever order the edge's
+    points come; a flank judged on fewer than 3 points is no unfolded start (``_both_flanks``)."""
+    from pipeline.tem.edges import TipFrame
+    from pipeline.tem.start_contour import _both_flanks, dim_zone
+
+    frame, R, hpx = TipFrame(np.array([150.0, 150.0]), tilt), 20.0, 100.0
+    x = np.arange(-60.0, 60.01, 1.0)
+    edge = frame.to_image(x, x**2 / (2 * R))
+    xf = np.linspace(-60.0, 60.0, 400)
+    normal = np.c_[xf / R, -np.ones_like(xf)] / np.hypot(xf / R, 1.0)[:, None]  # outward, tip frame
+    for d in (10.0, 3.0, -3.0):
+        q = np.c_[xf, xf**2 / (2 * R)] + d * normal
+        folded = frame.to_image(q[:, 0], q[:, 1])
+        assert dim_zone(folded, edge, frame, hpx) == pytest.approx(d, abs=0.05)
+        assert dim_zone(folded, np.random.default_rng(0).permutation(edge), frame, hpx) == pytest.approx(d, abs=0.05)
+    one_flank = frame.to_image(np.r_[xf[xf > 0], -1.0, -2.0], np.r_[xf[xf > 0] ** 2 / (2 * R), 0.0, 0.1])
+    assert _both_flanks(frame.to_image(xf, xf**2 / (2 * R)), frame, hpx)
+    assert not _both_flanks(one_flank, frame, hpx)
+
+
 def test_a_faint_layer_the_start_contour_folds_in_is_read_beyond_the_core(tmp_path):
     """Grid image 14 (``bench_tem_independent``): a 15.4 nm DLC layer at 6.6 % of the core's contrast, in
     focus, SNR 9.  The iso-level 2 % below the vacuum wandered through the layer's noise and folded (66 %

@@ -142,11 +142,7 @@ def _window_and_contour(img, coarse, hpx, path, px, background=None):
         frame = TipFrame(ca - origin, th)
         cont = clip_height(cont, frame, 1.3 * hpx + 8)
         cont, folded, start = unfolded_start(flat, noise, cont, level, ca - origin, frame, hpx, px)
-        hit = dict(
-            bottom=r1 < H and (cont[:, 0] >= win.shape[0] - 1.5).any(),
-            left=c0 > 0 and (cont[:, 1] <= 0.5).any(),
-            right=c1 < W and (cont[:, 1] >= win.shape[1] - 1.5).any(),
-        )
+        hit = _sides_hit(cont if folded is None else np.vstack([cont, folded]), win.shape, r1, c0, c1, H, W)
         if not any(hit.values()):
             break
         for side, h in hit.items():
@@ -154,6 +150,8 @@ def _window_and_contour(img, coarse, hpx, path, px, background=None):
     if len(cont) < 10:
         raise NoTipError(path, "no tip in the image (edge too short near the apex)")
     _check_border(cont, win.shape, frame, hpx, path, r0, c0, H, W)
+    if folded is not None:  # one at the image border can neither start the fit nor say where a layer ends
+        folded = None if _at_border(folded, win.shape, frame, hpx, r0, c0, H, W) else folded
     if background is not None:
         background["start"], background["folded"] = start, folded
     return win, origin, flat, noise, cont, frame, saturated
@@ -257,7 +255,12 @@ def _fit_from_start(win, flat, noise, cont, frame, fit_args, background):
     fit = _refined_edge(win, flat, noise, cont, frame, *fit_args)
     if background["folded"] is not None and _no_fit(fit[3], fit_args[3]):
         fit = _refined_edge(win, flat, noise, background["folded"], frame, *fit_args)
-        background["start"].update(start_level=background["start"]["level"], lower_level_not_fitted=True)
+        st = background["start"]
+        st["note"] = (
+            f"the fit from the iso-level {100 * (1 - st['start_level']):.0f} % below the vacuum found no edge; "
+            f"the first level ({100 * (1 - st['level']):.0f} %), whose contour folds, started it"
+        )
+        st.update(start_level=st["level"], lower_level_not_fitted=True)
         background["folded"] = None
     return fit
 
@@ -283,11 +286,15 @@ def _beyond_the_fold(pts, frame, hpx, px, background, extra, uncertainty):
     if folded is None or start["dim_zone"] <= DIM_ZONE_NM * 1e-9 or extra.get("faint_layer", {}).get("edge_is_core"):
         return uncertainty
     d = start["dim_zone"]
+    carried = (
+        f"the whole edge carries a common uncertainty of {d * 1e9:.1f} nm"
+        if uncertainty is not None
+        else "the per-normal edge fits carry no edge covariance to widen: this uncertainty is not in the result"
+    )
     note = (
         f"the iso-level {100 * (1 - start['level']):.0f} % below the vacuum folds back in something faint "
-        f"a median {d * 1e9:.1f} nm beyond the fitted edge that no layer test could read (a coating too faint "
-        f"to fit?): the fit started {100 * (1 - start['start_level']):.0f} % below the vacuum, and the whole "
-        f"edge carries a common uncertainty of {d * 1e9:.1f} nm"
+        f"a median {d * 1e9:.1f} nm beyond the final edge that no layer test placed (a coating too faint "
+        f"to fit?): the fit started {100 * (1 - start['start_level']):.0f} % below the vacuum, and {carried}"
     )
     start["note"] = note
     _add_flag(extra, note)
@@ -520,6 +527,25 @@ def _check_apex_found(apex_img, shape, x, z, hpx, path, min_points=10):
         "of view (its flanks leave the image sides), its apex cut by the border, or the edge may have "
         "left the tip (a faint thick coating): image a larger field, or check tem.orientation",
     )
+
+
+def _sides_hit(cont, shape, r1, c0, c1, H, W):
+    """The window sides (bottom, left, right) that contour ``cont`` runs into where the window (rows to
+    ``r1``, columns ``c0``..``c1`` of an H x W image) could still grow there."""
+    return dict(
+        bottom=r1 < H and (cont[:, 0] >= shape[0] - 1.5).any(),
+        left=c0 > 0 and (cont[:, 1] <= 0.5).any(),
+        right=c1 < W and (cont[:, 1] >= shape[1] - 1.5).any(),
+    )
+
+
+def _at_border(cont, shape, frame, hpx, r0, c0, H, W):
+    """True where ``_check_border`` would stop at ``cont``."""
+    try:
+        _check_border(cont, shape, frame, hpx, "", r0, c0, H, W)
+    except ApexAtBorderError:
+        return True
+    return False
 
 
 def _check_border(cont, shape, frame, hpx, path, r0, c0, H, W):

@@ -20,8 +20,8 @@ images).  Here:
    edge (``profiles._no_fit``), the first contour starts it after all;
 3. the folded contour is kept: how far it lies beyond the final edge (the median outward distance of its
    points, ``dim_zone``) says how far out something dims the image by the first level.  Where that is
-   more than ``DIM_ZONE_NM`` and no layer was read there, the whole edge gets a common offset of that
-   SD in its covariance, and a flag says so in words.  On the three wave-optical sets (260 images, 36
+   more than ``DIM_ZONE_NM`` and no test has marked the edge the core's, the whole edge gets a common
+   offset of that SD in its covariance, and a flag says so in words.  On the three wave-optical sets (260 images, 36
    started lower) the folded contour lay at most 1.6 nm beyond final edges within 1.5 nm of the true
    silhouette (26 images), and 3.1-7.1 nm beyond 5 of the 10 edges 1.7-12 nm inside a layer (2.0 nm
    for one more; 4 did not show it): ``DIM_ZONE_NM`` is set between them on those sets, not derived.
@@ -82,12 +82,24 @@ def unfolded_start(flat, noise, cont, level, apex_hint, frame, hpx, px):
             c = clip_height(initial_contour(flat, lv, apex_hint, smooth=SMOOTH_PX), frame, 1.3 * hpx + 8)
         except _Fail:
             continue
-        s = fold_share(c, frame, hpx, px) if len(c) >= 10 else 1.0
+        s = fold_share(c, frame, hpx, px) if _both_flanks(c, frame, hpx) else 1.0
         if s <= UNFOLDED_SHARE:
             info.update(start_level=float(lv), start_fold_share=s)
             return c, cont, info
     info["note"] = "no level gave an unfolded start"
     return cont, None, info
+
+
+def _both_flanks(cont, frame, hpx, min_points=3):
+    """True where ``cont`` has at least ``min_points`` on each flank at the heights ``fold_share`` judges
+    (a flank with fewer is not judged there, so its share would read 0)."""
+    from pipeline.tem.outer_layer import Z_RAMP
+
+    if len(cont) < 10:
+        return False
+    x, z = frame.to_tip(np.asarray(cont, float))
+    low = z <= 2 * Z_RAMP * hpx
+    return bool(((x < 0) & low).sum() >= min_points and ((x >= 0) & low).sum() >= min_points)
 
 
 def _radius_at(z, x_edge, z_edge, side):
