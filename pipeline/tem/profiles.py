@@ -151,7 +151,7 @@ def _window_and_contour(img, coarse, hpx, path, px, background=None):
         raise NoTipError(path, "no tip in the image (edge too short near the apex)")
     _check_border(cont, win.shape, frame, hpx, path, r0, c0, H, W)
     if folded is not None:  # one at the image border can neither start the fit nor say where a layer ends
-        folded = None if _at_border(folded, win.shape, frame, hpx, r0, c0, H, W) else folded
+        folded = None if _at_border(folded, frame, hpx, r0, c0, H, W) else folded
     if background is not None:
         background["start"], background["folded"] = start, folded
     return win, origin, flat, noise, cont, frame, saturated
@@ -238,9 +238,9 @@ def _add_flag(extra, note):
 
 
 def _with_offset_columns(uncertainty, new_basis, normals, columns, sds):
-    """The edge uncertainty (basis, covariance, normals) of an edge moved out to a layer: the moved
-    points' basis ``new_basis`` and ``normals``, plus one basis column per entry of ``columns`` (each
-    point's weight of an independent offset) with standard deviation ``sds`` (px)."""
+    """The edge uncertainty (basis, covariance, normals) of the points whose basis is ``new_basis`` and
+    normals ``normals`` (an edge moved out to a layer, or the same edge), plus one basis column per entry
+    of ``columns`` (each point's weight of an independent offset) with standard deviation ``sds`` (px)."""
     K = uncertainty[1].shape[0]
     cov = np.zeros((K + len(sds), K + len(sds)))
     cov[:K, :K] = uncertainty[1]
@@ -539,21 +539,20 @@ def _sides_hit(cont, shape, r1, c0, c1, H, W):
     )
 
 
-def _at_border(cont, shape, frame, hpx, r0, c0, H, W):
-    """True where ``_check_border`` would stop at ``cont``."""
-    try:
-        _check_border(cont, shape, frame, hpx, "", r0, c0, H, W)
-    except ApexAtBorderError:
-        return True
-    return False
+def _at_border(cont, frame, hpx, r0, c0, H, W):
+    """True where the apex region of ``cont`` (window px of the window at ``r0``, ``c0`` in an H x W
+    image) touches the image border (window edges inside the image are fine)."""
+    x, z = frame.to_tip(cont)
+    near = z < 0.5 * hpx
+    rows, cols = cont[near, 0] + r0, cont[near, 1] + c0
+    return bool(rows.size) and (
+        rows.max() >= H - 1.5 or cols.min() <= 0.5 or cols.max() >= W - 1.5 or rows.min() <= 0.5
+    )
 
 
 def _check_border(cont, shape, frame, hpx, path, r0, c0, H, W):
     """Apex region must not touch the image border (window edges inside the image are fine)."""
-    x, z = frame.to_tip(cont)
-    near = z < 0.5 * hpx
-    rows, cols = cont[near, 0] + r0, cont[near, 1] + c0
-    if rows.size and (rows.max() >= H - 1.5 or cols.min() <= 0.5 or cols.max() >= W - 1.5 or rows.min() <= 0.5):
+    if _at_border(cont, frame, hpx, r0, c0, H, W):
         raise ApexAtBorderError(path, "apex touches the image border")
 
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.tem.edges import _Fail, initial_contour
+from pipeline.tem.outer_layer import Z_RAMP, turned_back_share
 
 FOLD_SHARE = 0.2  # a start contour with more of its points turning back is folded
 UNFOLDED_SHARE = 0.15  # an alternative level is taken where at most this share turns back
@@ -59,8 +60,6 @@ def clip_height(cont, frame, hmax):
 
 def fold_share(cont, frame, hpx, px):
     """Share of ``cont``'s points near the apex that turn back (``outer_layer.turned_back_share``)."""
-    from pipeline.tem.outer_layer import turned_back_share
-
     return turned_back_share(cont, frame, hpx, px)
 
 
@@ -93,8 +92,6 @@ def unfolded_start(flat, noise, cont, level, apex_hint, frame, hpx, px):
 def _both_flanks(cont, frame, hpx, min_points=3):
     """True where ``cont`` has at least ``min_points`` on each flank at the heights ``fold_share`` judges
     (a flank with fewer is not judged there, so its share would read 0)."""
-    from pipeline.tem.outer_layer import Z_RAMP
-
     if len(cont) < 10:
         return False
     x, z = frame.to_tip(np.asarray(cont, float))
@@ -115,8 +112,6 @@ def dim_zone(folded, pts, frame, hpx):
     """Median signed distance (px, + outward) of the folded contour's points from the edge ``pts``
     (window px), over the heights the fold was judged on (``fold_share``)."""
     from scipy.spatial import cKDTree
-
-    from pipeline.tem.outer_layer import Z_RAMP
 
     xb, zb = frame.to_tip(np.asarray(folded, float))
     xe, ze = frame.to_tip(np.asarray(pts, float))
