@@ -132,6 +132,7 @@ def run_one(args):
             "coating_found",
             "blur_sigma",
             "dim_zone",
+            "bright_band",
         ):
             k, v = k + "_nm", v * 1e9
         row[k] = v

@@ -558,6 +558,70 @@ def test_a_fold_beyond_the_edge_that_no_layer_test_reads_widens_the_edge(tmp_pat
         assert "folds back" in f["edge_model/start_contour"].attrs["note"]
 
 
+def test_a_bright_fringe_a_layer_could_hide_in_widens_the_edge(tmp_path):
+    """DLC-set image 12 (``bench_tem_independent --seed0 3000 --fix layer=DLC``): a 14.8 nm DLC layer at
+    26 % of the core's contrast, 1.9 um out of focus, SNR 6.  The layer's Fresnel fringe is a bright band
+    INSIDE its outer surface; the fit takes it for vacuum and puts the edge 2.1 nm inside the layer, where
+    neither the coating search nor the faint-layer test (which starts beyond the bright band) can see the
+    layer.  The layer dims the window (9 % below the vacuum read beyond it), so the band (3.9 nm beyond
+    the edge's blur) is said in words and half of it joins the edge covariance as a common offset, and
+    the edge's bias is covered."""
+    from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
+
+    shank = (
+        ParticleSpec(7.647e-08, 156.6, (4.835e-09, 1.065e-08, 3.504e-09), 0.5, 0.0, "shank"),
+        ParticleSpec(6.616e-08, 158.3, (4.525e-09, 1.019e-08, 3.559e-09), 0.5, 0.0, "shank"),
+    )
+    p = TemWaveParams(
+        n=2.742, R=1.519e-08, S=1.006, z_join=1.632e-08, shank_half_angle_deg=21.13, blend_length=2.951e-08,
+        asymmetry=0.0, layer="DLC", layer_thickness=1.478e-08, core_absorption_length_200kv=7.529e-08,
+        layer_contrast=0.2643, contamination_contrast=0.2867, particles=shank, pixel_size=3.018e-10,
+        shape=(352, 352), apex_px=(111.2, 170.4), rotation_deg=-2.287, orientation="up", kv=203.5,
+        defocus=-1.902e-06, cs=0.001679, aperture=0.0186, illumination_angle=2.024e-05, cc=0.001784,
+        energy_spread_ev=0.5355, snr=6.206, bits=8, background_level=0.6438, float_gain=2.684, offset=3.556,
+        read_noise=0.5983, psf_sigma=0.5983, psf_tail_weight=0.121, psf_tail_length=4.788,
+        illumination_gradient=0.05279, gradient_angle_deg=80.37, vignetting=0.07779, seed=3012,
+    )  # fmt: skip
+    g = _graded_wave_image(tmp_path, p)
+    assert not g["lost"], g["lost_reason"]
+    assert g["edge_bias"] < -1.5 * NM  # inside the layer: the case this is about
+    assert 3.0 * NM < g["bright_band"] < 5.0 * NM
+    assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"] and g["n_covered"] and g["pulloff_covered_mc"]
+    assert any("brighter than the vacuum" in f and "seen by no test" in f for f in g["edge_flags"])
+
+
+@pytest.mark.parametrize("band_nm", [0.0, 3.0])
+def test_the_bright_band_is_the_width_of_the_image_brighter_than_the_vacuum(band_nm):
+    """``faint_layer_test``'s ``bright_band``: beside a paraboloidal tip (radius 12 nm, 0.2 nm px, blur
+    1 px), a band ``band_nm`` wide just beyond the blur's reach (3 sigma + 2 px) reads 15 % above the
+    vacuum; the test measures its width to within its block pixels and the blur, and only a band wider
+    than BRIGHT_BAND_NM is worded in the note (a layer hidden there is seen by no test)."""
+    from scipy import ndimage
+
+    from pipeline.tem.edges import TipFrame
+    from pipeline.tem.faint_layer import BRIGHT_BAND_NM, faint_layer_test
+
+    px_nm, rc, sigma, apex = 0.2, 12.0, 1.0, (420.0, 300.0)
+    R, C = np.mgrid[0:600, 0:600].astype(float)
+    z, x = np.maximum((apex[0] - R) * px_nm, 0.0), np.abs(C - apex[1]) * px_nm
+    r = np.sqrt(2 * rc * z)
+    d = (x - r) / np.sqrt(1.0 + (rc / np.maximum(r, 1e-9)) ** 2)  # normal distance outside the edge (nm)
+    d = np.where(apex[0] - R < 0, np.hypot(x, (R - apex[0]) * px_nm), d)  # below the apex: vacuum
+    reach_nm = (3 * sigma + 2) * px_nm
+    body = np.where(d < 0, 0.35, np.where((d >= reach_nm) & (d < reach_nm + band_nm), 1.15, 1.0))
+    img = ndimage.gaussian_filter(body, sigma) + np.random.default_rng(3).normal(0.0, 0.01, R.shape)
+    zz = np.linspace(0.0, 30.0, 600)
+    rr = np.sqrt(2 * rc * zz) / px_nm
+    pts = np.concatenate([np.column_stack([apex[0] - zz / px_nm, apex[1] - rr])[::-1],
+                          np.column_stack([apex[0] - zz / px_nm, apex[1] + rr])[1:]])  # fmt: skip
+    frame = TipFrame(apex=np.array(apex), angle=0.0)
+    out = faint_layer_test(img, (0, 0), pts, frame, sigma, 0.05, 20.0 / px_nm, px_nm * NM)
+    assert out["tested"] and not out["found"]
+    # read in the test's 2 x 2 px blocks (0.4 nm); the blur carries the band's outer side about a block on
+    assert band_nm - 0.4 <= out["bright_band"] / NM <= band_nm + 0.8
+    assert ("brighter than the vacuum" in out["note"]) == (band_nm > BRIGHT_BAND_NM)
+
+
 def _vignetted_tip(apex, band_dimming):
     """A 1024 px image at 0.129 nm px: a cone-and-sphere tip (22 deg half-angle, 10 nm radius, apex at
     ``apex`` (row, col) pointing down) in a 20 nm light layer dimming the vacuum by ``band_dimming``,

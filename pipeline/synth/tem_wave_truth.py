@@ -21,7 +21,8 @@ Metrics (SI units):
 - chi2_red: the silhouette fit's reduced chi^2 (how far the image is from the edge model); blur_sigma:
   its fitted Gaussian blur (m); start_fold_share, start_level, dim_zone: its starting contour
   (``pipeline.tem.start_contour``: the first level's fold share, the level the fit started from, and
-  where the first level folded, its median distance beyond the final edge, m);
+  where the first level folded, its median distance beyond the final edge, m); bright_band: the
+  width of the band beyond the edge's blur brighter than the vacuum (``pipeline.tem.faint_layer``, m);
 - lost: the interval cannot be used -- the stage raised (reason: its message), or the
   stage-2 fit carries a flag that makes the inversion drop it
   (``pipeline.inversion.UNUSABLE_FIT_FLAGS``), or the n policy rejects it (``clip_n``).
@@ -241,6 +242,7 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
         start_fold_share=float((em.get("start_contour") or {}).get("fold_share", float("nan"))),
         start_level=float((em.get("start_contour") or {}).get("start_level", float("nan"))),
         dim_zone=float((em.get("start_contour") or {}).get("dim_zone", float("nan"))),
+        bright_band=float((em.get("faint_layer") or {}).get("bright_band", float("nan"))),
         lost=bool(lost_reason(fit)),
         lost_reason=lost_reason(fit),
     )

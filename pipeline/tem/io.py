@@ -245,6 +245,8 @@ def _write_faint_layer(g, fl):
         ):
             if key in ol:
                 w(sg, f"outer_{key}", ol[key], "m", what)
+    if "bright_band" in fl:
+        w(sg, "bright_band", fl["bright_band"], "m", "band beyond the edge's blur brighter than the vacuum")
     if not fl.get("tested"):
         return
     w(sg, "start", fl["start"], "m", "distance beyond the fitted edge from which layers are tested")

@@ -296,11 +296,44 @@ def _beyond_the_fold(pts, frame, hpx, px, background, extra, uncertainty):
         f"a median {d * 1e9:.1f} nm beyond the final edge that no layer test placed (a coating too faint "
         f"to fit?): the fit started {100 * (1 - start['start_level']):.0f} % below the vacuum, and {carried}"
     )
-    start["note"] = note
+    start.update(note=note, widened=uncertainty is not None)
     _add_flag(extra, note)
     if uncertainty is None:
         return None
     return _with_offset_columns(uncertainty, uncertainty[0], uncertainty[2], [np.ones(len(pts))], [d / px])
+
+
+def _in_the_bright_band(n_points, px, extra, uncertainty, layer_dims_window):
+    """Where a faint layer dims the window (``layer_dims_window``: the window was flattened on the vacuum
+    read beyond it, ``vacuum_level``), a bright band (a Fresnel fringe) wider than
+    ``faint_layer.BRIGHT_BAND_NM`` lies beyond the edge's blur, and the faint-layer test ran and saw no
+    layer beyond it: the layer's outer surface may lie in that band, where neither the coating search
+    nor the faint-layer test (``faint_layer``) sees it, so the whole edge may lie up to the band's width
+    inside the tip's outer surface.  Half the width joins the edge covariance as the SD of a common
+    offset (95 % of it within +- the width), with a flag in words; not where the fold of the starting
+    contour (``_beyond_the_fold``) has already widened the edge.  Returns the uncertainty."""
+    from pipeline.tem.faint_layer import BRIGHT_BAND_NM
+
+    fl = extra.get("faint_layer") or {}
+    band = float(fl.get("bright_band", 0.0))
+    widened = (extra.get("start_contour") or {}).get("widened", False)
+    if not layer_dims_window or band <= BRIGHT_BAND_NM * 1e-9 or not fl.get("tested") or fl.get("found") or widened:
+        return uncertainty
+    carried = (
+        f"the whole edge carries a common uncertainty of {0.5 * band * 1e9:.1f} nm"
+        if uncertainty is not None
+        else "the per-normal edge fits carry no edge covariance to widen: this uncertainty is not in the result"
+    )
+    _add_flag(
+        extra,
+        f"a faint layer dims the window, and the image is brighter than the vacuum up to {band * 1e9:.1f} nm "
+        "beyond the edge's blur (a Fresnel fringe; out of focus, a faint coating's fringe lies inside its outer "
+        "surface): a layer ending there is seen by no test, the edge may lie up to "
+        f"{band * 1e9:.1f} nm inside the tip's outer surface, and {carried}",
+    )
+    if uncertainty is None:
+        return None
+    return _with_offset_columns(uncertainty, uncertainty[0], uncertainty[2], [np.ones(n_points)], [0.5 * band / px])
 
 
 def _note_background(extra, background):
@@ -458,6 +491,7 @@ def extract_profile(
             img, origin, pts, frame, edge_model, hpx, px, extra, uncertainty, saturated is not None
         )
     uncertainty = _beyond_the_fold(pts, frame, hpx, px, background, extra, uncertainty)
+    uncertainty = _in_the_bright_band(len(pts), px, extra, uncertainty, bool(background.get("used")))
     x, z = frame.to_tip(pts)
     keep = z <= 1.02 * hpx
     pts, x, z = pts[keep], x[keep], z[keep]
