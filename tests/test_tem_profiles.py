@@ -564,8 +564,8 @@ def test_a_bright_fringe_a_layer_could_hide_in_widens_the_edge(tmp_path):
     INSIDE its outer surface; the fit takes it for vacuum and puts the edge 2.1 nm inside the layer, where
     neither the coating search nor the faint-layer test (which starts beyond the bright band) can see the
     layer.  The layer dims the window (9 % below the vacuum read beyond it), so the band (3.9 nm beyond
-    the edge's blur) is said in words and half of it joins the edge covariance as a common offset, and
-    the edge's bias is covered."""
+    the edge's blur) is said in words, and half the distance where the faint-layer test starts (6.3 nm)
+    joins the edge covariance as a common offset: the edge's bias (2.1 nm) is covered."""
     from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
 
     shank = (
@@ -587,6 +587,7 @@ def test_a_bright_fringe_a_layer_could_hide_in_widens_the_edge(tmp_path):
     assert g["edge_bias"] < -1.5 * NM  # inside the layer: the case this is about
     assert 3.0 * NM < g["bright_band"] < 5.0 * NM
     assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"] and g["n_covered"] and g["pulloff_covered_mc"]
+    assert 2.9 * NM < g["edge_bias_sd"] < 3.4 * NM  # sqrt((6.3 / 2)^2 + the model error's 0.21^2) nm
     assert any("brighter than the vacuum" in f and "seen by no test" in f for f in g["edge_flags"])
 
 
@@ -620,6 +621,44 @@ def test_the_bright_band_is_the_width_of_the_image_brighter_than_the_vacuum(band
     # read in the test's 2 x 2 px blocks (0.4 nm); the blur carries the band's outer side about a block on
     assert band_nm - 0.4 <= out["bright_band"] / NM <= band_nm + 0.8
     assert ("brighter than the vacuum" in out["note"]) == (band_nm > BRIGHT_BAND_NM)
+
+
+def _bright_band_case(**change):
+    """(extra, uncertainty, layer_dims_window) of an edge of 4 points at 0.25 nm px whose faint-layer test
+    ran, saw no layer and read a 3 nm bright band (test starts 5.5 nm out), in a dimmed window; ``change``
+    overrides entries of the faint-layer dict or (key "dims") the dimming."""
+    fl = dict(tested=True, found=False, edge_is_core=False, bright_band=3.0 * NM, start=5.5 * NM)
+    fl.update({k: v for k, v in change.items() if k != "dims"})
+    basis, cov, normals = np.ones((4, 2)), np.diag([1.0, 4.0]), np.zeros((4, 2))
+    return {"faint_layer": fl}, (basis, cov, normals), change.get("dims", True)
+
+
+@pytest.mark.parametrize(
+    "change, carried",
+    [({}, True), ({"dims": False}, False), ({"found": True}, False), ({"edge_is_core": True}, False),
+     ({"tested": False}, False), ({"bright_band": 1.9 * NM}, False)],
+)  # fmt: skip
+def test_the_bright_band_widens_the_edge_only_where_a_dimming_layer_could_hide_in_it(change, carried):
+    """``profiles._in_the_bright_band``: one common-offset column of SD start / 2 (in px) and one flag where
+    a faint layer dims the window, the band is wider than 2 nm and the test ran and saw no layer; the
+    uncertainty untouched otherwise, and where the fold or a clipped vacuum's fringe already placed it."""
+    from pipeline.tem.profiles import _in_the_bright_band
+
+    px = 0.25 * NM
+    extra, unc, dims = _bright_band_case(**change)
+    basis, cov, _ = _in_the_bright_band(4, px, extra, unc, dims)
+    flags = extra.get("global_flags", [])
+    if not carried:
+        assert basis.shape == (4, 2) and cov.shape == (2, 2) and not flags
+        return
+    assert basis.shape == (4, 3) and np.all(basis[:, 2] == 1.0) and np.allclose(cov[:2, :2], unc[1])
+    assert cov[2, 2] == pytest.approx((0.5 * 5.5 / 0.25) ** 2, rel=1e-12) and cov[2, :2].tolist() == [0.0, 0.0]
+    assert extra["faint_layer"]["bright_band_sd"] == pytest.approx(2.75 * NM)
+    assert len(flags) == 1 and "within 5.5 nm of the edge" in flags[0] and "2.8 nm" in flags[0]
+    for other in ({"start_contour": {"widened": True}}, {"clipped_layer": {"found": True}}):
+        extra, unc, dims = _bright_band_case()
+        extra.update(other)
+        assert _in_the_bright_band(4, px, extra, unc, dims)[0].shape == (4, 2)
 
 
 def _vignetted_tip(apex, band_dimming):

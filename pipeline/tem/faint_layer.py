@@ -36,10 +36,12 @@ Layers reaching less than ``d0`` beyond the fitted edge lie in the fitted pixels
 search's (``coating_search``).  Measured on the independent wave-optical simulator
 (``benchmarks/bench_faint_layer.py``).  Except where a bright band (a Fresnel fringe) pushes ``d0`` out:
 the coating search sees ~3 sigma + 4 px beyond its starting contour, so a layer whose outer surface lies
-in a band wider than ``BRIGHT_BAND_NM`` is seen by neither (``bright_band``, m, and the note say so;
-``pipeline.tem.profiles`` widens the edge by it).  Out of focus, the bright band of a weak phase object
-(a DLC layer) lies INSIDE its outer surface: of the 26 used images of the three image sets whose band
-is wider than 2 nm, 9 have their edge 1.4-5.8 nm inside a DLC layer, all at one sign of the defocus.
+between there and ``d0`` is seen by neither.  The band's width is ``bright_band`` (m), and where it is
+wider than ``BRIGHT_BAND_NM`` the note says so; ``pipeline.tem.profiles`` carries ``d0`` / 2 as a
+common offset SD of the edge where a faint layer also dims the window.  At one sign of the defocus
+(overfocus, on the wave-optical benchmark's images) the bright band of a weak phase object (a DLC layer)
+lies INSIDE its outer surface: of the 26 used images of the three image sets whose band is wider than
+2 nm, 9 have their edge 1.4-5.8 nm inside a DLC layer, all of them in overfocus.
 """
 
 from __future__ import annotations
@@ -63,9 +65,10 @@ VACUUM_MARGIN_NM = 6.0  # vacuum beyond the thickest layer tested, for the illum
 FRINGE_NM = 1.5  # left out beyond the edge's blur: Fresnel fringes (sqrt(lambda df) ~ 1-2 nm at 0.5-2 um)
 TAIL_SCALES_NM = (0.7, 1.5)  # edge-tail nuisance blurs (nm): PSF tails, Fresnel fringes (~sqrt(lambda df))
 SATURATED_MAX = 0.05  # share of the tested pixels at the image's maximum above which the vacuum is clipped
-# a bright band wider than this beyond the edge's blur (a Fresnel fringe, ``_bright_reach``) is a blind zone
-# where a layer's outer surface could hide from both tests (the thinnest layer whose limit is stated)
-BRIGHT_BAND_NM = LIMIT_THICKNESS_NM[0]
+# a bright band wider than this beyond the edge's blur (a Fresnel fringe, ``_bright_reach``; the width as
+# measured, which reads a band up to ~0.6 nm wide: block pixels and the blur's tail) is a blind zone where a
+# layer's outer surface could hide from both tests; 2 nm: the thinnest layer whose detection limit is stated
+BRIGHT_BAND_NM = 2.0
 TEST_PIXEL_NM = 0.4  # finer images are tested on b x b block means (b = floor(0.4 nm / pixel)): a 1-20 nm
 # layer's template is smooth on that scale, and the test's cost no longer grows with the pixel count
 
@@ -274,15 +277,9 @@ def faint_layer_test(img, origin, pts, frame, sigma_px, k_body, hpx, pixel_size,
         valid = (d >= d0) & band
         # the blur in block-pixels: the fitted Gaussian's and the block average's (variance (b^2 - 1)/12 px^2)
         sigma_b = float(np.sqrt(sigma_px**2 + (b * b - 1) / 12.0)) / b
-        ctx = (sigma_b, k_body, px, d0, corner, frame, coat_model, hpx, b)
+        ctx = (sigma_b, k_body, px, d0, corner, frame, coat_model, hpx, b, bright)
         out = _test_and_limit(data, pix, d, valid, t_px, ctx)
     out["bright_band"] = bright * px
-    if out.get("tested") and not out.get("found") and bright * px > BRIGHT_BAND_NM * 1e-9:
-        out["note"] += (
-            f"; the image is brighter than the vacuum up to {bright * px * 1e9:.1f} nm beyond the edge's blur (a "
-            "Fresnel fringe): a layer whose outer surface lies there is seen by neither this test nor the coating "
-            "search"
-        )
     return out
 
 
@@ -306,7 +303,7 @@ def _bright_reach(data, d, band, d_blur, nm, b=1):
 
 def _test_and_limit(data, pix, d, valid, t_px, ctx):
     """The fits of ``faint_layer_test`` over the valid pixels: result dict."""
-    sigma_b, k_body, px, d0, corner, frame, coat_model, hpx, b = ctx
+    sigma_b, k_body, px, d0, corner, frame, coat_model, hpx, b, bright = ctx
     if valid.sum() < 200:
         return dict(tested=False, note="faint-layer test not done (too little vacuum beside the tip in the image)")
     R, C = np.nonzero(valid)
@@ -335,14 +332,15 @@ def _test_and_limit(data, pix, d, valid, t_px, ctx):
     plane_map = np.stack([np.ones_like(rn), rn, cn, rn**2, rn * cn, cn**2], -1) @ coef
     k_axis = _axis_attenuation(data, pix, plane_map, hpx)
     k_core = k_axis if np.isfinite(k_axis) and k_axis > 0 else k_body
-    out = _statement(np.array(rows), k_core, px, d0, coat_model, max_d=float(d[valid].max()))
+    out = _statement(np.array(rows), k_core, px, (d0, bright), coat_model, max_d=float(d[valid].max()))
     out.update(core_attenuation=k_core / px, body_attenuation=k_body / px)
     return out
 
 
-def _statement(rows, k_core, px, d0, coat_model, max_d):
+def _statement(rows, k_core, px, start, coat_model, max_d):
     """Decision, limits and the note in words from the per-thickness rows
-    (T px, A, SE, A_left, SE_left, A_right, SE_right)."""
+    (T px, A, SE, A_left, SE_left, A_right, SE_right); ``start``: (d0, the bright band's width), image px."""
+    d0, bright = start
     t, a, se, al, sel, ar, ser = rows.T
     zc, zl, zr = a / se, al / sel, ar / ser
     seen = (zc >= Z_DETECT) & (np.minimum(zl, zr) >= Z_FLANK) & (a / k_core >= MIN_CONTRAST)
@@ -397,6 +395,18 @@ def _statement(rows, k_core, px, d0, coat_model, max_d):
     out["note"] = (
         f"no coating found {where}; a layer thicker than {head:g} nm with contrast above "
         f"{100 * worst:.0f} % of the core's would have been seen "
-        f"(90 % detection; {lim_words}; layers within {d0 * px * 1e9:.1f} nm of the edge are the coating test's)"
+        f"(90 % detection; {lim_words}; " + _nearer_layers(d0 * px, bright * px)
     )
     return out
+
+
+def _nearer_layers(start, band):
+    """The note's words on layers nearer the edge than ``start`` (m), the test's first distance; ``band``
+    (m): the bright band beyond the edge's blur that pushed it out (``_bright_reach``)."""
+    if band <= BRIGHT_BAND_NM * 1e-9:
+        return f"layers within {start * 1e9:.1f} nm of the edge are the coating test's)"
+    return (
+        f"the coating test sees ~3 blur sigma + 4 px beyond its start, and the image is brighter than the "
+        f"vacuum up to {band * 1e9:.1f} nm beyond the edge's blur (a Fresnel fringe): a layer whose outer surface "
+        f"lies within {start * 1e9:.1f} nm of the edge is seen by neither test)"
+    )

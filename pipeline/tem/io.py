@@ -247,6 +247,8 @@ def _write_faint_layer(g, fl):
                 w(sg, f"outer_{key}", ol[key], "m", what)
     if "bright_band" in fl:
         w(sg, "bright_band", fl["bright_band"], "m", "band beyond the edge's blur brighter than the vacuum")
+        sd = fl.get("bright_band_sd", 0.0)
+        w(sg, "bright_band_sd", sd, "m", "common offset SD of the edge for a layer hidden there (0: none)")
     if not fl.get("tested"):
         return
     w(sg, "start", fl["start"], "m", "distance beyond the fitted edge from which layers are tested")

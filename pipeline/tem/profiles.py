@@ -307,33 +307,39 @@ def _in_the_bright_band(n_points, px, extra, uncertainty, layer_dims_window):
     """Where a faint layer dims the window (``layer_dims_window``: the window was flattened on the vacuum
     read beyond it, ``vacuum_level``), a bright band (a Fresnel fringe) wider than
     ``faint_layer.BRIGHT_BAND_NM`` lies beyond the edge's blur, and the faint-layer test ran and saw no
-    layer beyond it: the layer's outer surface may lie in that band, where neither the coating search
-    nor the faint-layer test (``faint_layer``) sees it, so the whole edge may lie up to the band's width
-    inside the tip's outer surface.  Half the width joins the edge covariance as the SD of a common
-    offset (95 % of it within +- the width), with a flag in words; not where the fold of the starting
-    contour (``_beyond_the_fold``) has already widened the edge.  Returns the uncertainty."""
+    layer beyond it: the layer's outer surface may lie anywhere up to where that test starts (``start``,
+    beyond the band), where neither it nor the coating test sees it, so the whole edge may lie up to
+    ``start`` inside the tip's outer surface.  ``start`` / 2 joins the edge covariance as the SD of a
+    common offset (95 % of it within +- ``start``; ``faint_layer["bright_band_sd"]``, m), with a flag in
+    words; not where the fold of the starting contour (``_beyond_the_fold``) has already widened the
+    edge, nor where a layer or a clipped vacuum's fringe has moved it or marked it the core's.  Returns
+    the uncertainty."""
     from pipeline.tem.faint_layer import BRIGHT_BAND_NM
 
     fl = extra.get("faint_layer") or {}
     band = float(fl.get("bright_band", 0.0))
+    placed = fl.get("found") or fl.get("edge_is_core") or (extra.get("clipped_layer") or {}).get("found")
     widened = (extra.get("start_contour") or {}).get("widened", False)
-    if not layer_dims_window or band <= BRIGHT_BAND_NM * 1e-9 or not fl.get("tested") or fl.get("found") or widened:
+    if not layer_dims_window or band <= BRIGHT_BAND_NM * 1e-9 or not fl.get("tested") or placed or widened:
         return uncertainty
+    sd = 0.5 * float(fl["start"])
     carried = (
-        f"the whole edge carries a common uncertainty of {0.5 * band * 1e9:.1f} nm"
+        f"the whole edge carries a common uncertainty of {sd * 1e9:.1f} nm"
         if uncertainty is not None
         else "the per-normal edge fits carry no edge covariance to widen: this uncertainty is not in the result"
     )
     _add_flag(
         extra,
         f"a faint layer dims the window, and the image is brighter than the vacuum up to {band * 1e9:.1f} nm "
-        "beyond the edge's blur (a Fresnel fringe; out of focus, a faint coating's fringe lies inside its outer "
-        "surface): a layer ending there is seen by no test, the edge may lie up to "
-        f"{band * 1e9:.1f} nm inside the tip's outer surface, and {carried}",
+        "beyond the edge's blur (a Fresnel fringe; at one sign of the defocus a faint coating's fringe lies "
+        "inside its outer surface): a layer whose outer surface lies within "
+        f"{fl['start'] * 1e9:.1f} nm of the edge (where the faint-layer test starts) is seen by no test, so the "
+        f"edge may lie up to that far inside the tip's outer surface, and {carried}",
     )
     if uncertainty is None:
         return None
-    return _with_offset_columns(uncertainty, uncertainty[0], uncertainty[2], [np.ones(n_points)], [0.5 * band / px])
+    fl["bright_band_sd"] = sd
+    return _with_offset_columns(uncertainty, uncertainty[0], uncertainty[2], [np.ones(n_points)], [sd / px])
 
 
 def _note_background(extra, background):
