@@ -286,11 +286,7 @@ def _beyond_the_fold(pts, frame, hpx, px, background, extra, uncertainty):
     if folded is None or start["dim_zone"] <= DIM_ZONE_NM * 1e-9 or extra.get("faint_layer", {}).get("edge_is_core"):
         return uncertainty
     d = start["dim_zone"]
-    carried = (
-        f"the whole edge carries a common uncertainty of {d * 1e9:.1f} nm"
-        if uncertainty is not None
-        else "the per-normal edge fits carry no edge covariance to widen: this uncertainty is not in the result"
-    )
+    carried = _carried_words(d, uncertainty)
     note = (
         f"the iso-level {100 * (1 - start['level']):.0f} % below the vacuum folds back in something faint "
         f"a median {d * 1e9:.1f} nm beyond the final edge that no layer test placed (a coating too faint "
@@ -298,9 +294,23 @@ def _beyond_the_fold(pts, frame, hpx, px, background, extra, uncertainty):
     )
     start.update(note=note, widened=uncertainty is not None)
     _add_flag(extra, note)
+    return _with_common_offset(uncertainty, len(pts), d / px)
+
+
+def _carried_words(sd, uncertainty):
+    """The end of a widening flag: the common uncertainty ``sd`` (m) the edge now carries, or that the
+    per-normal fits (``uncertainty`` None) have no edge covariance to carry it."""
+    if uncertainty is None:
+        return "the per-normal edge fits carry no edge covariance to widen: this uncertainty is not in the result"
+    return f"the whole edge carries a common uncertainty of {sd * 1e9:.1f} nm"
+
+
+def _with_common_offset(uncertainty, n_points, sd_px):
+    """``uncertainty`` with one more column: an offset common to all ``n_points`` edge points of SD
+    ``sd_px`` (px); None stays None (per-normal fits)."""
     if uncertainty is None:
         return None
-    return _with_offset_columns(uncertainty, uncertainty[0], uncertainty[2], [np.ones(len(pts))], [d / px])
+    return _with_offset_columns(uncertainty, uncertainty[0], uncertainty[2], [np.ones(n_points)], [sd_px])
 
 
 def _in_the_bright_band(n_points, px, extra, uncertainty, layer_dims_window):
@@ -323,11 +333,7 @@ def _in_the_bright_band(n_points, px, extra, uncertainty, layer_dims_window):
     if not layer_dims_window or band <= BRIGHT_BAND_NM * 1e-9 or not fl.get("tested") or placed or widened:
         return uncertainty
     sd = 0.5 * float(fl["start"])
-    carried = (
-        f"the whole edge carries a common uncertainty of {sd * 1e9:.1f} nm"
-        if uncertainty is not None
-        else "the per-normal edge fits carry no edge covariance to widen: this uncertainty is not in the result"
-    )
+    carried = _carried_words(sd, uncertainty)
     _add_flag(
         extra,
         f"a faint layer dims the window, and the image is brighter than the vacuum up to {band * 1e9:.1f} nm "
@@ -336,10 +342,9 @@ def _in_the_bright_band(n_points, px, extra, uncertainty, layer_dims_window):
         f"{fl['start'] * 1e9:.1f} nm of the edge (where the faint-layer test starts) is seen by no test, so the "
         f"edge may lie up to that far inside the tip's outer surface, and {carried}",
     )
-    if uncertainty is None:
-        return None
-    fl["bright_band_sd"] = sd
-    return _with_offset_columns(uncertainty, uncertainty[0], uncertainty[2], [np.ones(n_points)], [sd / px])
+    if uncertainty is not None:
+        fl["bright_band_sd"] = sd
+    return _with_common_offset(uncertainty, n_points, sd / px)
 
 
 def _note_background(extra, background):
