@@ -46,7 +46,8 @@ keeps it.
 
 Defocus fringes (``fringe_correction``): where the fit leaves a reduced chi^2 above
 ``fringe_correction.MIN_CHI2_RED``, a coherent (Fresnel) rendering of the fitted body fits one
-uniform offset of the edge with the defocus, the phase and the blur; the offset is applied (flag
+uniform offset of the edge with the defocus, the phase, the blur and a common scale of the
+attenuations; the offset is applied (flag
 "defocus fringes: edge moved ...", its standard error added to the edge covariance as a common
 offset) if it lowers chi^2 enough and is no larger than a fringe can shift the edge.
 
