@@ -304,3 +304,37 @@ def test_the_attenuation_follows_the_moved_edge(tmp_path):
     assert flag and "lambda x defocus -" in flag[0], flag  # overfocus, the true sign
     assert abs(g["edge_bias"]) < 0.12e-9, g["edge_bias"]  # -0.21 nm with g held; -0.07 nm now
     assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"] and g["n_covered"] and g["pulloff_covered_mc"]
+
+
+def test_a_light_layer_that_is_the_dark_fringe_is_taken_back(tmp_path):
+    """Grid image 60 (``bench_tem_independent``, parameters exactly): uncoated, 41 nm overfocus,
+    0.341 nm px, SNR 30.  The dark Fresnel fringe just outside the edge is read by the fit as a light
+    layer (0.93 nm at half the core's attenuation) and the edge was its outer surface, 0.44 nm outside
+    the true silhouette; the reduced chi^2 (1.4) is below the correction's gate, and a coherent
+    rendering of the coated body cannot take the layer back.  A body of one material rendered
+    coherently fits better, and its edge lies on the true silhouette."""
+    from pipeline.synth.tem_wave import TemWaveParams
+    from pipeline.tem.fringe_correction import LAYER_AS_FRINGE_MAX
+
+    p = TemWaveParams(
+        n=3.297135250805106, R=8.732952581165123e-09, S=1.0547208874422234, z_join=2.9790813468634023e-08,
+        shank_half_angle_deg=22.94934938526368, blend_length=2.6515905053597115e-08,
+        asymmetry=-0.02573017995852478, layer="none", layer_thickness=0.0,
+        core_absorption_length_200kv=5.623124631892766e-08, layer_contrast=0.2,
+        contamination_contrast=0.25590209576501965, particles=(), pixel_size=3.412828737287849e-10,
+        shape=(448, 448), apex_px=(351.22781112662466, 234.12591634917692), rotation_deg=0.7203834038044619,
+        orientation="down", kv=186.25100790451827, defocus=-4.129449772673339e-08, cs=0.0012514978786032228,
+        aperture=0.005018219209862615, illumination_angle=8.780344682505383e-05, cc=0.002499031117614823,
+        energy_spread_ev=0.5739455194851104, snr=29.58103815810744, bits=0, background_level=0.48087172568689024,
+        float_gain=4.242729192693947, offset=0.0, read_noise=1.4755596572156398, psf_sigma=0.40044192807503876,
+        psf_tail_weight=0.030923652580131508, psf_tail_length=4.014895973439877,
+        illumination_gradient=0.006117979695792455, gradient_angle_deg=180.35867501361835,
+        vignetting=0.003877487165109639, seed=60,
+    )  # fmt: skip
+    g, flag = _graded(tmp_path, p)
+    assert not g["lost"], g["lost_reason"]
+    assert g["chi2_red"] < 5.0  # below the gate: the correction ran for the thin layer
+    assert 0.0 < g["coating_found"] < LAYER_AS_FRINGE_MAX  # the fringe read as a layer (0.93 nm)
+    assert flag and "is read as this fringe" in flag[0], g["edge_flags"]
+    assert abs(g["edge_bias"]) < 0.1e-9, g["edge_bias"]  # +0.44 nm at the layer's outer surface; -0.01 now
+    assert g["n_covered"] and g["pulloff_covered_mc"] and abs(g["pulloff_error"]) < 0.03
