@@ -87,6 +87,7 @@ PHASE_RANGE = (0.4, 1.9)  # eta within this factor range of the start
 LAMBDA_DF_MAX = 3.0e-12 * 2.0e-6  # m^2: lambda (2.0 pm at 300 kV .. 3.7 pm at 100 kV) x |df| <= 2 um
 _START_SIZES = (0.02, 0.04, 0.08, 0.25, 0.6)
 START_FRACTIONS = tuple(-f for f in reversed(_START_SIZES)) + _START_SIZES  # starts of A, fractions of the largest
+SLIGHT_START_SIZES = (0.02, 0.04, 0.08)  # the starts where only a thin light layer brought the correction
 PAD_MIN_PX, PAD_MAX_PX = 16, 64  # FFT padding around the rectangle (px): the kernel's reach, within these
 START_STEPS = 3  # LM steps from every screened start; the best is continued
 SCREEN_KEEP = 2  # starts taken into the 2-D fit after the 1-D screen (``_screened_starts``)
@@ -249,21 +250,24 @@ def _offset_sd(JTJ, scale):
     return float(np.sqrt(var)) if np.isfinite(var) and var >= 0 else float("nan")
 
 
-def fringe_offset(prob, fitter, st, pixel_size, iters=10):
+def fringe_offset(prob, fitter, st, pixel_size, iters=10, misfit=True):
     """Fit of the coherent rendering of the fitted silhouette ``st`` (module doc).  Returns a dict:
     offset_px (uniform outward offset of the edge), offset_sd_px, A_px2 (lambda df / px^2), eta
     (rad/px), sigma_px (blur), attenuation_scale (g), dchi2 (chi^2 decrease against the Beer-Lambert
     model), layer_as_fringe (the fitted light layer, layer_px thick, is read as the fringe: a body of one
     material rendered, chi^2 lower by layer_as_fringe_dchi2 than the coated one's; None otherwise),
-    applied."""
+    applied.  ``misfit``: the fit's reduced chi^2 is above ``MIN_CHI2_RED``; where it is not (a thin
+    light layer brought the correction here), only the body of one material is rendered, from the
+    slight defoci (``SLIGHT_START_SIZES``)."""
     co = _Coherent(prob, fitter, st, pixel_size)
     r0 = co.residual(np.zeros(_NQ))
     chi0 = float(r0 @ r0)
-    q, cost = _solve(prob, st, co, pixel_size, iters)
+    q, cost = _solve(prob, st, co, pixel_size, iters) if misfit else (np.zeros(_NQ), chi0)
     as_fringe = None
     if co.coat > 0:  # the light layer may be the fringe itself (module doc)
+        bar = None if misfit else _profile_chi2(prob, co, st)  # below the gate: only if 1-D shows a gain
         one = _one_material(prob, fitter, st, pixel_size)
-        q1, cost1 = _solve(prob, st, one, pixel_size, iters)
+        q1, cost1 = _solve(prob, st, one, pixel_size, iters, _START_SIZES if misfit else SLIGHT_START_SIZES, bar)
         if cost1 < cost - MIN_DCHI2:
             as_fringe = cost - cost1
             co, q, cost = one, q1, cost1
@@ -291,19 +295,33 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
     )
 
 
-def _solve(prob, st, co, pixel_size, iters):
-    """(q, chi^2) of the coherent rendering ``co``: the screened starts (``_screened_starts``), three
-    LM steps from each, the better continued for ``iters``."""
+def _solve(prob, st, co, pixel_size, iters, sizes=_START_SIZES, bar=None):
+    """(q, chi^2) of the coherent rendering ``co``: the screened starts (``_screened_starts``; the
+    defoci ``sizes`` x the largest, either sign), three LM steps from each, the better continued for
+    ``iters``; (None, inf) where no 1-D optimum is below ``bar``."""
     a_max = LAMBDA_DF_MAX / float(pixel_size or 0.25e-9) ** 2
     ls0 = float(np.log(0.5 / co.sigma)) if co.sigma > 0.6 else 0.0  # the fit's blur took part of the fringe
     starts = [np.zeros(_NQ)]
-    for fa in START_FRACTIONS:
+    for fa in tuple(-f for f in reversed(sizes)) + tuple(sizes):
         A = fa * a_max
         # the fringe shifts the transmission edge outwards by up to ~sqrt(|A|) (more in overfocus)
         starts.append(np.array([-(0.8 if A < 0 else 0.3) * np.sqrt(abs(A)), A, 0.0, ls0, 0.0]))
-    runs = [co.lm(q, START_STEPS) for q in _screened_starts(prob, st, co, starts, a_max)]
+    runs = [co.lm(q, START_STEPS) for q in _screened_starts(prob, st, co, starts, a_max, bar)]
+    if not runs:
+        return None, np.inf
     q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
     return q, cost
+
+
+def _profile_chi2(prob, co, st):
+    """chi^2 of the Beer-Lambert state (A = 0) of ``co`` in the 1-D model of the arc-averaged edge
+    profile (``_edge_profile``, ``_profile_model``); None where the profile has too few bins."""
+    prof = _edge_profile(prob, co, st)
+    if prof is None:
+        return None
+    dg, kt, t_o, dd, y, se = prof
+    r = (_profile_model(np.zeros(4), dg, kt, t_o, co.eta0, co.sigma, at=dd) - y) / se
+    return float(r @ r)
 
 
 def _one_material(prob, fitter, st, pixel_size):
@@ -318,7 +336,7 @@ def _one_material(prob, fitter, st, pixel_size):
     return co
 
 
-def _screened_starts(prob, st, co, starts, a_max):
+def _screened_starts(prob, st, co, starts, a_max, bar=None):
     """The ``SCREEN_KEEP`` starts of the 2-D fit, from the Beer-Lambert state (``starts[0]``, A = 0)
     and the optimum of every start in a fit of the arc-averaged edge profile (``_edge_profile``,
     ``_profile_model``: a 1-D FFT, cheap), ranked by their chi^2 in 2-D (one ``residual`` each).
@@ -328,7 +346,7 @@ def _screened_starts(prob, st, co, starts, a_max):
     the profile hold data (a saturated detector clips nearly all of it), the starts themselves are
     ranked.  Measured on the 65 grid images where the correction runs (``bench_tem_independent``),
     against three LM steps from every start: the final chi^2 lower by > 1 % on 19, higher by > 1 %
-    on 10."""
+    on 10.  ``bar``: none is kept unless a 1-D optimum's chi^2 is below it."""
     prof = _edge_profile(prob, co, st)
     if prof is None:
         candidates = list(starts)
@@ -344,6 +362,8 @@ def _screened_starts(prob, st, co, starts, a_max):
             least_squares(res, np.clip(q[:4], lo + 1e-9, hi - 1e-9), bounds=(lo, hi), max_nfev=SCREEN_NFEV)
             for q in starts
         ]
+        if bar is not None and min(2.0 * f.cost for f in fits) >= bar:
+            return []
         candidates = [starts[0]] + [np.r_[f.x, 0.0] for f in fits]  # g = 1: the 1-D model has no g
     chi2 = [float(r @ r) for r in map(co.residual, candidates)]
     kept = []

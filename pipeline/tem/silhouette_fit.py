@@ -233,7 +233,7 @@ def _fit_pixels(
     layer = fitter.unpack(st.v)[4] * (pixel_size or 0.25e-9)  # m; 0 for the single-layer model
     misfit = float(st.res @ st.res) / max(1, prob.n_data(st.B, st.lin)) > FRINGE_MIN_CHI2_RED
     if fringe_correction and (misfit or 0 < layer < LAYER_AS_FRINGE_MAX):
-        fringe = fringe_offset(prob, fitter, st, pixel_size)
+        fringe = fringe_offset(prob, fitter, st, pixel_size, misfit=misfit)
     prob.map_c = None
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
 
