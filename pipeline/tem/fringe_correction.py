@@ -46,28 +46,6 @@ on the 260 images of ``bench_tem_independent``'s three sets and cost 8-13 % more
 optima by their own chi^2 to save 2-D evaluations put 6 of those edges 0.6-2.2 nm outward, into a
 wrong basin: not done.
 
-A light layer that is a fringe.  In a slight overfocus (20-220 nm) the dark fringe just outside an
-uncoated edge is read by the fit as a light layer 0.65-2.2 nm thick at about half the core's
-attenuation, and the edge reported is its outer surface, 0.3-0.8 nm out (10 of the 12 such images of
-``bench_tem_independent``'s three sets; their reduced chi^2, 1.4-2.6, is below ``MIN_CHI2_RED``).
-The coherent rendering of that coated body cannot take the layer back (it already holds the fringe:
-on grid image 60 it stays 16000-29000 in chi^2 above the Beer-Lambert fit at the true defocus).  So
-where the fit is coated with a layer thinner than ``LAYER_AS_FRINGE_MAX``, the correction is tried
-whatever the chi^2 (``silhouette_fit``), and where it is coated at all, the same rendering of a body
-of one material (the layer's thickness 0, the core's attenuation, the outer curve) is fitted too;
-where its chi^2 is lower by more than ``MIN_DCHI2`` it is taken, and the flag says that the light
-layer is read as the fringe (``layer_as_fringe``).  Below the chi^2 gate (only the thin layer brought
-the correction) the one-material body starts from the slight defoci alone (``SLIGHT_START_SIZES``),
-its 2-D fit is skipped unless a 1-D optimum beats the coated Beer-Lambert state in the 1-D edge
-profile (``_profile_chi2``), and the coated body is rendered (its competitor) only where the
-one-material body beats the Beer-Lambert fit: rendering both bodies from every start cost 1.4-2.6 x
-the stage-1 time on thin-oxide images (``bench_tem_speed``); without the coated competitor the
-one-material body took the layer off two real oxides in slight underfocus (grid 73, 109: 0.3-0.6 nm
-inward).  Measured on the three sets (grid / DLC set / held-out): median edge 0.306 -> 0.294 /
-0.323 -> 0.315 / 0.174 -> 0.159 nm; 8 edges 0.3-0.8 nm closer (grid 60: +0.44 -> -0.01 nm, 63, 87,
-99; DLC set 36, 59; held-out 54: +0.84 -> 0.00 nm, 57), 2 worse (grid 95, 2.9 -> 4.0 nm inside a
-DLC layer, covered; DLC-set 42, 5.8 -> 6.3 nm inside, outside before too); coverage unchanged.
-
 The offset is applied only if chi^2 falls by more than ``MIN_DCHI2`` AND |delta| is within what a
 fringe can shift, ``MAX_SHIFT_PER_FRINGE`` x sqrt(|A|) + ``SHIFT_SLACK_PX`` (a large offset
 at A ~ 0 is not a fringe: it is a model error elsewhere, e.g. an unfitted layer).  Only fits
@@ -84,8 +62,7 @@ from scipy.optimize import least_squares
 
 from pipeline.tem.silhouette_model import _Body
 
-MIN_CHI2_RED = 5.0  # the correction is tried only above this reduced chi^2 of the fit ...
-LAYER_AS_FRINGE_MAX = 2.5e-9  # ... or where the fit is coated with a layer thinner than this (m)
+MIN_CHI2_RED = 5.0  # the correction is tried only above this reduced chi^2 of the fit
 MIN_DCHI2 = 25.0  # chi^2 decrease needed to apply it (4 extra parameters besides the offset)
 MAX_SHIFT_PER_FRINGE = 1.5  # largest accepted |offset| per fringe width sqrt(|A|) (px / px) ...
 SHIFT_SLACK_PX = 0.25  # ... plus this (px)
@@ -94,7 +71,6 @@ PHASE_RANGE = (0.4, 1.9)  # eta within this factor range of the start
 LAMBDA_DF_MAX = 3.0e-12 * 2.0e-6  # m^2: lambda (2.0 pm at 300 kV .. 3.7 pm at 100 kV) x |df| <= 2 um
 _START_SIZES = (0.02, 0.04, 0.08, 0.25, 0.6)
 START_FRACTIONS = tuple(-f for f in reversed(_START_SIZES)) + _START_SIZES  # starts of A, fractions of the largest
-SLIGHT_START_SIZES = (0.02, 0.04, 0.08)  # the starts where only a thin light layer brought the correction
 PAD_MIN_PX, PAD_MAX_PX = 16, 64  # FFT padding around the rectangle (px): the kernel's reach, within these
 START_STEPS = 3  # LM steps from every screened start; the best is continued
 SCREEN_KEEP = 2  # starts taken into the 2-D fit after the 1-D screen (``_screened_starts``)
@@ -257,30 +233,23 @@ def _offset_sd(JTJ, scale):
     return float(np.sqrt(var)) if np.isfinite(var) and var >= 0 else float("nan")
 
 
-def fringe_offset(prob, fitter, st, pixel_size, iters=10, misfit=True):
+def fringe_offset(prob, fitter, st, pixel_size, iters=10):
     """Fit of the coherent rendering of the fitted silhouette ``st`` (module doc).  Returns a dict:
     offset_px (uniform outward offset of the edge), offset_sd_px, A_px2 (lambda df / px^2), eta
     (rad/px), sigma_px (blur), attenuation_scale (g), dchi2 (chi^2 decrease against the Beer-Lambert
-    model), layer_as_fringe (the fitted light layer, layer_px thick, is read as the fringe: a body of one
-    material rendered, chi^2 lower by layer_as_fringe_dchi2 than the coated one's; None otherwise),
-    applied.  ``misfit``: the fit's reduced chi^2 is above ``MIN_CHI2_RED``; where it is not (a thin
-    light layer brought the correction here), the body of one material is rendered first, from the
-    slight defoci (``SLIGHT_START_SIZES``), and the coated body only where that beats the Beer-Lambert
-    fit."""
+    model), applied."""
     co = _Coherent(prob, fitter, st, pixel_size)
     r0 = co.residual(np.zeros(_NQ))
     chi0 = float(r0 @ r0)
-    q, cost = _solve(prob, st, co, pixel_size, iters) if misfit else (np.zeros(_NQ), chi0)
-    as_fringe = None
-    if co.coat > 0:  # the light layer may be the fringe itself (module doc)
-        bar = None if misfit else _profile_chi2(prob, co, st)  # below the gate: only if 1-D shows a gain
-        one = _one_material(prob, fitter, st, pixel_size)
-        q1, cost1 = _solve(prob, st, one, pixel_size, iters, _START_SIZES if misfit else SLIGHT_START_SIZES, bar)
-        if not misfit and cost1 < cost - MIN_DCHI2:  # the competitor it must beat: the coated body rendered
-            q, cost = _solve(prob, st, co, pixel_size, iters)
-        if cost1 < cost - MIN_DCHI2:
-            as_fringe = cost - cost1
-            co, q, cost = one, q1, cost1
+    a_max = LAMBDA_DF_MAX / float(pixel_size or 0.25e-9) ** 2
+    ls0 = float(np.log(0.5 / co.sigma)) if co.sigma > 0.6 else 0.0  # the fit's blur took part of the fringe
+    starts = [np.zeros(_NQ)]
+    for fa in START_FRACTIONS:
+        A = fa * a_max
+        # the fringe shifts the transmission edge outwards by up to ~sqrt(|A|) (more in overfocus)
+        starts.append(np.array([-(0.8 if A < 0 else 0.3) * np.sqrt(abs(A)), A, 0.0, ls0, 0.0]))
+    runs = [co.lm(q, START_STEPS) for q in _screened_starts(prob, st, co, starts, a_max)]
+    q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
     r = co.residual(q)
     J = co.jacobian(q, r)
     JTJ = J.T @ J  # at the solution
@@ -298,55 +267,11 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10, misfit=True):
         sigma_px=float(co.sigma * np.exp(q[3])),
         attenuation_scale=float(np.exp(q[4])),
         dchi2=chi0 - cost,
-        layer_as_fringe=as_fringe is not None,
-        layer_as_fringe_dchi2=as_fringe,
-        layer_px=float(fitter.unpack(st.v)[4]),
         applied=bool(chi0 - cost > MIN_DCHI2 and abs(delta) <= bound and np.isfinite(sd)),
     )
 
 
-def _solve(prob, st, co, pixel_size, iters, sizes=_START_SIZES, bar=None):
-    """(q, chi^2) of the coherent rendering ``co``: the screened starts (``_screened_starts``; the
-    defoci ``sizes`` x the largest, either sign), three LM steps from each, the better continued for
-    ``iters``; (None, inf) where no 1-D optimum is below ``bar``."""
-    a_max = LAMBDA_DF_MAX / float(pixel_size or 0.25e-9) ** 2
-    ls0 = float(np.log(0.5 / co.sigma)) if co.sigma > 0.6 else 0.0  # the fit's blur took part of the fringe
-    starts = [np.zeros(_NQ)]
-    for fa in tuple(-f for f in reversed(sizes)) + tuple(sizes):
-        A = fa * a_max
-        # the fringe shifts the transmission edge outwards by up to ~sqrt(|A|) (more in overfocus)
-        starts.append(np.array([-(0.8 if A < 0 else 0.3) * np.sqrt(abs(A)), A, 0.0, ls0, 0.0]))
-    runs = [co.lm(q, START_STEPS) for q in _screened_starts(prob, st, co, starts, a_max, bar)]
-    if not runs:
-        return None, np.inf
-    q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
-    return q, cost
-
-
-def _profile_chi2(prob, co, st):
-    """chi^2 of the Beer-Lambert state (A = 0) of ``co`` in the 1-D model of the arc-averaged edge
-    profile (``_edge_profile``, ``_profile_model``); None where the profile has too few bins."""
-    prof = _edge_profile(prob, co, st)
-    if prof is None:
-        return None
-    dg, kt, t_o, dd, y, se = prof
-    r = (_profile_model(np.zeros(4), dg, kt, t_o, co.eta0, co.sigma, at=dd) - y) / se
-    return float(r @ r)
-
-
-def _one_material(prob, fitter, st, pixel_size):
-    """The coherent rendering of the fitted outer curve as a body of one material (the layer's
-    thickness 0, the core's attenuation throughout), on the same pixels (the pixel map and the signed
-    distances made afresh for it)."""
-    co = _Coherent(prob, fitter, st, pixel_size)
-    co.coat, co.k_o = 0.0, co.k_c
-    prob.update_pixel_map(co.c, 0.0, cold=True)
-    co.chords0 = _Body(*prob.curve(co.c), 0.0).chords(prob.nx_, prob.nz_)
-    co.sd0 = np.where(co.chords0[0] > 0, -prob.dist_need, prob.dist_need)
-    return co
-
-
-def _screened_starts(prob, st, co, starts, a_max, bar=None):
+def _screened_starts(prob, st, co, starts, a_max):
     """The ``SCREEN_KEEP`` starts of the 2-D fit, from the Beer-Lambert state (``starts[0]``, A = 0)
     and the optimum of every start in a fit of the arc-averaged edge profile (``_edge_profile``,
     ``_profile_model``: a 1-D FFT, cheap), ranked by their chi^2 in 2-D (one ``residual`` each).
@@ -356,7 +281,7 @@ def _screened_starts(prob, st, co, starts, a_max, bar=None):
     the profile hold data (a saturated detector clips nearly all of it), the starts themselves are
     ranked.  Measured on the 65 grid images where the correction runs (``bench_tem_independent``),
     against three LM steps from every start: the final chi^2 lower by > 1 % on 19, higher by > 1 %
-    on 10.  ``bar``: none is kept unless a 1-D optimum's chi^2 is below it."""
+    on 10."""
     prof = _edge_profile(prob, co, st)
     if prof is None:
         candidates = list(starts)
@@ -372,8 +297,6 @@ def _screened_starts(prob, st, co, starts, a_max, bar=None):
             least_squares(res, np.clip(q[:4], lo + 1e-9, hi - 1e-9), bounds=(lo, hi), max_nfev=SCREEN_NFEV)
             for q in starts
         ]
-        if bar is not None and min(2.0 * f.cost for f in fits) >= bar:
-            return []
         candidates = [starts[0]] + [np.r_[f.x, 0.0] for f in fits]  # g = 1: the 1-D model has no g
     chi2 = [float(r @ r) for r in map(co.residual, candidates)]
     kept = []

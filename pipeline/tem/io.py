@@ -140,7 +140,6 @@ def _write_fringe(g, fr, px):
     """The defocus-fringe correction of the silhouette fit (``pipeline.tem.fringe_correction``)."""
     w = h5io.write_dataset
     g.attrs["fringe_applied"] = bool(fr["applied"])
-    g.attrs["fringe_layer_as_fringe"] = bool(fr.get("layer_as_fringe", False))  # the light layer read as the fringe
     w(g, "fringe_offset", fr["offset_px"] * px, "m", "uniform outward edge offset of the coherent rendering")
     w(g, "fringe_offset_sd", fr["offset_sd_px"] * px, "m", "its standard error (added to the edge covariance)")
     w(g, "fringe_lambda_defocus", fr["A_px2"] * px**2, "m^2", "wavelength x defocus fitted (> 0 underfocus)")

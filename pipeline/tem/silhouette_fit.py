@@ -47,9 +47,7 @@ keeps it.
 Defocus fringes (``fringe_correction``): where the fit leaves a reduced chi^2 above
 ``fringe_correction.MIN_CHI2_RED``, a coherent (Fresnel) rendering of the fitted body fits one
 uniform offset of the edge with the defocus, the phase, the blur and a common scale of the
-attenuations (also where the fit is coated with a layer thinner than
-``fringe_correction.LAYER_AS_FRINGE_MAX``, whatever its chi^2: that layer may be a dark fringe, and a
-body of one material is then rendered too); the offset is applied (flag
+attenuations; the offset is applied (flag
 "defocus fringes: edge moved ...", its standard error added to the edge covariance as a common
 offset) if it lowers chi^2 enough and is no larger than a fringe can shift the edge.
 
@@ -90,8 +88,8 @@ import numpy as np
 
 from pipeline.tem.coating_search import COAT_DCHI2, _coating_search
 from pipeline.tem.edges import TipFrame
-from pipeline.tem.fringe_correction import LAYER_AS_FRINGE_MAX, fringe_offset
 from pipeline.tem.fringe_correction import MIN_CHI2_RED as FRINGE_MIN_CHI2_RED
+from pipeline.tem.fringe_correction import fringe_offset
 from pipeline.tem.model_error import LAYER_SD, common_offset_sd_px
 from pipeline.tem.silhouette_model import (
     KNOT_NM,
@@ -230,10 +228,8 @@ def _fit_pixels(
     lim = _bounds(prob.K, k0, max_coat, fitter.coated)
     st, JTJ, names = fitter.polish(st, *lim)
     fringe = {}
-    layer = fitter.unpack(st.v)[4] * (pixel_size or 0.25e-9)  # m; 0 for the single-layer model
-    misfit = float(st.res @ st.res) / max(1, prob.n_data(st.B, st.lin)) > FRINGE_MIN_CHI2_RED
-    if fringe_correction and (misfit or 0 < layer < LAYER_AS_FRINGE_MAX):
-        fringe = fringe_offset(prob, fitter, st, pixel_size, misfit=misfit)
+    if fringe_correction and float(st.res @ st.res) / max(1, prob.n_data(st.B, st.lin)) > FRINGE_MIN_CHI2_RED:
+        fringe = fringe_offset(prob, fitter, st, pixel_size)
     prob.map_c = None
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
 
@@ -268,7 +264,7 @@ def _fit_binned(
         if key in ct:
             ct[key] *= b
     fr = gf.fringe
-    for key in ("offset_px", "offset_sd_px", "sigma_px", "layer_px"):
+    for key in ("offset_px", "offset_sd_px", "sigma_px"):
         if key in fr:
             fr[key] *= b
     if "A_px2" in fr:
@@ -396,13 +392,6 @@ def _fringe_words(fr, pixel_size):
         f"defocus fringes: edge moved {fr['offset_px'] * nm:+.2f} +- {fr['offset_sd_px'] * nm:.2f} nm (noise) by a "
         f"coherent rendering of the fitted body (lambda x defocus {fr['A_px2'] * nm**2:+.1f} nm^2, i.e. "
         f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f})"
-        + (
-            f"; the light layer the fit found ({fr['layer_px'] * nm:.2f} nm) is read as this fringe: a body of "
-            f"one material rendered so fits better (chi^2 -{fr['layer_as_fringe_dchi2']:.0f} against the "
-            "coated body rendered)"
-            if fr.get("layer_as_fringe")
-            else ""
-        )
     )
 
 
