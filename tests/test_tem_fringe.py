@@ -214,13 +214,10 @@ def test_edge_profile_keeps_the_body_where_the_vacuum_is_clipped(fitted_problem)
 
 def _graded(tmp_path, p):
     """The independent wave-optical image of ``p`` through the stage, graded against its true
-    silhouette (``tem_wave_truth.evaluate_file``), and the correction's flag."""
-    from pipeline.synth.tem_wave import simulate, write_image
-    from pipeline.synth.tem_wave_truth import evaluate_file
+    silhouette (``wave_images.graded_wave_image``), and the correction's flag."""
+    from wave_images import graded_wave_image
 
-    img, truth = simulate(p)
-    write_image(tmp_path / "img.tif", img, p.pixel_size)
-    g = evaluate_file(tmp_path / "img.tif", truth)
+    g = graded_wave_image(tmp_path, p)
     return g, [f for f in g["edge_flags"] if f.startswith("defocus fringes: edge moved")]
 
 

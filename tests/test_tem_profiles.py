@@ -327,14 +327,9 @@ def test_the_axis_line_through_cut_midpoints_rejects_a_block_of_contaminated_cut
 
 
 def _graded_wave_image(tmp_path, p):
-    """Render the independent wave-optical image of parameters ``p``, save it as ``tmp_path/img.tif``
-    and grade the stage's profile of it against the true silhouette (``tem_wave_truth.evaluate_file``)."""
-    from pipeline.synth.tem_wave import simulate, write_image
-    from pipeline.synth.tem_wave_truth import evaluate_file
+    from wave_images import graded_wave_image
 
-    img, truth = simulate(p)
-    write_image(tmp_path / "img.tif", img, p.pixel_size)
-    return evaluate_file(tmp_path / "img.tif", truth)
+    return graded_wave_image(tmp_path, p)
 
 
 def test_a_light_layer_thicker_than_the_window_margins_does_not_hide_the_edge(tmp_path):

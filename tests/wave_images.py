@@ -1,5 +1,5 @@
 """Images of the INDEPENDENT wave-optical simulator (``pipeline.synth.tem_wave``) shared by the TEM
-tests: a clean tip, so that what a test varies is what it names."""
+tests: a clean tip, so that what a test varies is what it names; any image graded through the stage."""
 
 from __future__ import annotations
 
@@ -25,3 +25,14 @@ def clean_tip(seed, layer, pixel_size, side, **kw):
     p = draw_params(seed, **fields)
     img, truth = simulate(p)
     return TemImage(img.astype(float), p.pixel_size, "synthetic"), truth, p
+
+
+def graded_wave_image(tmp_path, p):
+    """Render the independent wave-optical image of parameters ``p``, save it as ``tmp_path/img.tif``
+    and grade the stage's profile of it against the true silhouette (``tem_wave_truth.evaluate_file``)."""
+    from pipeline.synth.tem_wave import simulate, write_image
+    from pipeline.synth.tem_wave_truth import evaluate_file
+
+    img, truth = simulate(p)
+    write_image(tmp_path / "img.tif", img, p.pixel_size)
+    return evaluate_file(tmp_path / "img.tif", truth)

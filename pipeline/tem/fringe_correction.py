@@ -37,8 +37,8 @@ or brightened the whole body and the linear illumination took the difference (he
 1.3 um overfocus: the edge 0.29 nm inside; with g 0.07 nm).  The fringe pattern is periodic-like in
 A, so one start finds the wrong basin: A = 0 and ten defoci from 2 % to 60 % of the largest
 (``START_FRACTIONS``, either sign, spaced about geometrically) are each taken to the optimum of
-a 1-D model of the arc-averaged edge profile; those optima and the Beer-Lambert state are ranked by their 2-D
-chi^2, the best two get three LM steps, and the better of them is continued (``_screened_starts``).
+a 1-D model of the arc-averaged edge profile; those optima and the Beer-Lambert state are ranked by
+their 2-D chi^2, the best two get three LM steps, and the better of them is continued (``_screened_starts``).
 Starts at no less than 8 % of the largest missed a slight defocus at fine pixels (held-out image
 51: 87 nm overfocus at 0.12 nm px, A = -18 px^2 against a smallest start of 34 px^2; its edge
 stayed 0.32 nm outside, now 0.01 nm); starts down to 0.5 % changed no edge by more than 0.05 nm
@@ -94,9 +94,9 @@ class _Coherent:
         self.eta0 = PHASE_PER_M * float(pixel_size or 0.25e-9)
         self._fields = {}
         self._T = {}  # (delta, g) -> sub-sampled Beer-Lambert transmission at the needed pixels
-        self._waves = {}  # (delta, eta) -> exit wave (complex64) and |psi|^2 at the needed pixels
-        self._spectra = {}  # (delta, eta, padding) -> FFT of the padded exit wave (A's column reuses it)
-        self._fringes = {}  # (delta, A, eta) -> dI at the needed pixels (the blur's column reuses it)
+        self._waves = {}  # (delta, eta, g) -> exit wave (complex64) and |psi|^2 at the needed pixels
+        self._spectra = {}  # (delta, eta, g, padding) -> FFT of the padded exit wave (A's column reuses it)
+        self._fringes = {}  # (delta, A, eta, g) -> dI at the needed pixels (the blur's column reuses it)
         # the pixel map of the fitted curve, made from it alone, and its signed distances: every
         # offset's map is derived from them (``_Problem.offset_map``), whatever was evaluated before
         prob.update_pixel_map(self.c, self.coat, cold=True)
@@ -106,8 +106,8 @@ class _Coherent:
     def fields(self, delta):
         """(t_outer, t_core at every rectangle pixel centre, the needed pixels' chords with their
         sub-samples (``_Problem.chords``), indices of the rectangle pixels with material) of the curve
-        moved by ``delta`` (the last three kept).  One body serves both, and the needed pixels' centre chords are the
-        rectangle's (the same numbers as the silhouette model's own)."""
+        moved by ``delta`` (the last three kept).  One body serves both, and the needed pixels' centre
+        chords are the rectangle's (the same numbers as the silhouette model's own)."""
         key = float(delta)
         if key not in self._fields:
             c = self.c + delta
