@@ -142,6 +142,13 @@ def _write_fringe(g, fr, px):
     g.attrs["fringe_applied"] = bool(fr["applied"])
     w(g, "fringe_offset", fr["offset_px"] * px, "m", "uniform outward edge offset of the coherent rendering")
     w(g, "fringe_offset_sd", fr["offset_sd_px"] * px, "m", "its standard error (added to the edge covariance)")
+    w(
+        g,
+        "fringe_model_sd",
+        fr.get("model_sd_px", 0.0) * px,
+        "m",
+        "its model error, half the offset (added to the edge covariance where applied)",
+    )
     w(g, "fringe_lambda_defocus", fr["A_px2"] * px**2, "m^2", "wavelength x defocus fitted (> 0 underfocus)")
     w(g, "fringe_attenuation_scale", fr["attenuation_scale"], "1", "common scale of the attenuations fitted with it")
     w(g, "fringe_dchi2", fr["dchi2"], "1", "chi^2(Beer-Lambert) - chi^2(coherent rendering)")

@@ -49,7 +49,8 @@ Defocus fringes (``fringe_correction``): where the fit leaves a reduced chi^2 ab
 uniform offset of the edge with the defocus, the phase, the blur and a common scale of the
 attenuations; the offset is applied (flag
 "defocus fringes: edge moved ...", its standard error added to the edge covariance as a common
-offset) if it lowers chi^2 enough and is no larger than a fringe can shift the edge.
+offset, and half the move as the correction's own model error: the sign of the defocus is not
+always identified) if it lowers chi^2 enough and is no larger than a fringe can shift the edge.
 
 Saturated detector (``censored``): where the beam is above the detector's full scale (8- or
 16-bit images of an over-exposed vacuum), the clipped pixels read the full scale instead of the
@@ -264,7 +265,7 @@ def _fit_binned(
         if key in ct:
             ct[key] *= b
     fr = gf.fringe
-    for key in ("offset_px", "offset_sd_px", "sigma_px"):
+    for key in ("offset_px", "offset_sd_px", "model_sd_px", "sigma_px"):
         if key in fr:
             fr[key] *= b
     if "A_px2" in fr:
@@ -350,8 +351,8 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
     fringe = fringe or {}
     if fringe.get("applied"):
         # the uniform offset of the coherent rendering moves every edge point; its standard error
-        # is a common offset of the whole edge
-        cov_c = cov_c + fringe["offset_sd_px"] ** 2 * np.ones((K, K))
+        # and its model error (``fringe_correction.MOVE_SD_SHARE``) are a common offset of the whole edge
+        cov_c = cov_c + (fringe["offset_sd_px"] ** 2 + fringe["model_sd_px"] ** 2) * np.ones((K, K))
         flags.append(_fringe_words(fringe, pixel_size))
     hit = np.nonzero(np.abs(c) >= 5.99)[0]
     if hit.size:
@@ -391,7 +392,9 @@ def _fringe_words(fr, pixel_size):
     return (
         f"defocus fringes: edge moved {fr['offset_px'] * nm:+.2f} +- {fr['offset_sd_px'] * nm:.2f} nm (noise) by a "
         f"coherent rendering of the fitted body (lambda x defocus {fr['A_px2'] * nm**2:+.1f} nm^2, i.e. "
-        f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f})"
+        f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f}); the sign of the defocus is "
+        f"not always identified (a light layer can read as a fringe), so the edge carries a common uncertainty "
+        f"of half the move, {fr['model_sd_px'] * nm:.2f} nm"
     )
 
 
