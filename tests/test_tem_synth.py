@@ -1,12 +1,15 @@
-"""Synthetic TEM image generator: determinism, exact outer profile, contrast physics, TIFF tags."""
+"""Synthetic TEM image generator: determinism, exact outer profile, contrast physics, TIFF tags;
+the projection helpers' erosions (eroded_radius, core_radius_sq_table)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
 
 from pipeline.synth.tem_image import outer_radius, power_law_radius, render_tem_image, write_tem_tiff
-from pipeline.tem.projection import chord, eroded_radius
+from pipeline.tem.projection import chord, core_radius_sq_table, eroded_radius
 from pipeline.tem.reading import read_tem_image
 
 
@@ -44,6 +47,77 @@ def test_erosion_is_normal_offset():
     zz = z > 20
     expect = z[zz] * np.tan(alpha) - 2.0 / np.cos(alpha)
     assert np.allclose(rc[zz], expect, atol=2e-3)
+
+
+def _disk_offsets(dz, t):
+    """The offsets s of the core table's definition: the grid offsets m dz strictly inside the
+    disk and its two ends -t and +t."""
+    m = range(-math.ceil(t / dz) - 1, math.ceil(t / dz) + 2)
+    return [-t] + [i * dz for i in m if abs(i * dz) < t] + [t]
+
+
+def _core_table_by_rows(rho_sq, dz, t):
+    """Reference: every core row z0 + t + j dz on its own, r(z) by np.interp of rho_sq (its ends
+    held beyond the table), min over s of r(z + s) - sqrt(t^2 - s^2)."""
+    s = np.array(_disk_offsets(dz, t))
+    cap = np.sqrt(np.maximum(t * t - s * s, 0.0))
+    grid = np.arange(len(rho_sq), dtype=float)
+    out = np.zeros(len(rho_sq))
+    for j in range(len(rho_sq)):
+        r = np.sqrt(np.maximum(np.interp(j + (t + s) / dz, grid, rho_sq), 0.0))
+        out[j] = max(np.min(r - cap), 0.0) ** 2
+    return out
+
+
+def _core_table_tables(rng, n):
+    """Outer tables: monotone (random increments; a power-law tip), and not (zeros, bumps)."""
+    z = np.arange(n, dtype=float)
+    yield np.cumsum(rng.uniform(0.0, 50.0, n))
+    yield (300.0 * (z / max(z[-1], 1.0)) ** 0.2) ** 2
+    yield np.maximum(rng.normal(0.0, 1.0, n), 0.0) * 1e4
+    yield np.concatenate([np.zeros(n // 3), rng.uniform(0.0, 9e4, n - n // 3)])
+
+
+CORE_TABLE_THICKNESSES = [0.0, 0.05, 0.3, 0.5, 1.0, 1.5, 7.5, 12.37]  # with the multiples of dz
+
+
+@pytest.mark.parametrize("dz", [0.1, 0.25])
+def test_core_table_is_the_erosion_row_by_row(dz):
+    """core_radius_sq_table (one interpolation per fraction of a row, shifted slices) against the
+    definition evaluated row by row: random monotone and non-monotone tables, thicknesses on and
+    off the grid (t = k dz has no inner offset at |s| = t), thinner than a row, and 0."""
+    rng = np.random.default_rng(7)
+    thick = CORE_TABLE_THICKNESSES + [k * dz for k in (0.5, 1, 1.5, 2, 3, 5, 10, 15)] + list(rng.uniform(0, 20, 3))
+    cases = [(n, thick) for n in (2, 3, 40, 400)] + [(2500, [0.3, 1.5, 12.37])]  # 2500: long rows
+    for n, ts in cases:
+        for rho_sq in _core_table_tables(rng, n):
+            tol = 1e-12 * rho_sq.max()
+            for t in ts:
+                got, ref = core_radius_sq_table(rho_sq, dz, t), _core_table_by_rows(rho_sq, dz, t)
+                assert got.shape == ref.shape
+                assert np.abs(got - ref).max() <= tol, (n, t)
+                assert np.all(((got > 0) == (ref > 0)) | (np.maximum(got, ref) <= tol)), (n, t)
+
+
+def test_core_table_is_bitwise_the_per_pair_arithmetic():
+    """The shifted slices give the numbers of interpolating r at every (row, offset) pair,
+    f = j + (t + s) / dz, bit for bit (a difference of 1e-13 px once changed fits of ill-posed
+    images, cda854e)."""
+    rng = np.random.default_rng(3)
+    rho_sq = np.cumsum(rng.uniform(0.0, 50.0, 60)) * (rng.random(60) > 0.1)
+    n = rho_sq.size
+    for dz, t in [(0.1, 0.3), (0.1, 1.5), (0.1, 12.37), (0.25, 1.0), (0.1234, 7.5), (0.1, 0.05)]:
+        expect = []
+        for j in range(n):
+            best = math.inf
+            for s in _disk_offsets(dz, t):
+                f = min(j + (t + s) / dz, n - 1.0)
+                i = min(int(f), n - 2)
+                w = f - i
+                r = math.sqrt(max(rho_sq[i] * (1.0 - w) + rho_sq[i + 1] * w, 0.0))
+                best = min(best, r - math.sqrt(max(t * t - s * s, 0.0)))
+            expect.append(max(best, 0.0) * max(best, 0.0))
+        assert np.array_equal(core_radius_sq_table(rho_sq, dz, t), expect), (dz, t)
 
 
 def test_projection_contrast_noise_free_profile():

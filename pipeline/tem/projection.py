@@ -60,6 +60,35 @@ def core_radius_table(z_grid, r_outer, thickness, dz):
     return eroded_radius(zg, r, thickness)[pad:]
 
 
+_BLOCK = 16384  # table entries per temporary of core_radius_sq_table: they stay in the cache
+
+
+def _radius_at(rho_sq, f):
+    """sqrt of ``rho_sq`` interpolated linearly at the grid coordinates ``f >= 0`` (clipped at the
+    table's last row; 0 where the interpolated square is negative)."""
+    n = rho_sq.size
+    f = np.minimum(f, n - 1.0)
+    i = np.minimum(f.astype(np.intp), n - 2)
+    w = f - i
+    return np.sqrt(np.maximum(rho_sq[i] * (1.0 - w) + rho_sq[i + 1] * w, 0.0))
+
+
+def _min_over_offsets(out, r, u, i0, cap):
+    """out = min(out, r[u, i0 : i0 + n] - cap) over the offsets (u, i0, cap), n = out.size, in
+    place: short rows in blocks of offsets read through a window view, long ones a slice at a time."""
+    n = out.size
+    step = _BLOCK // n
+    if step >= 8:
+        win = np.lib.stride_tricks.sliding_window_view(r, n, axis=1)  # win[u, i0] = r[u, i0 : i0 + n]
+        for o in range(0, cap.size, step):
+            x = slice(o, o + step)
+            np.minimum(out, (win[u[x], i0[x]] - cap[x, None]).min(axis=0), out=out)
+        return
+    tmp = np.empty(n)
+    for ui, i, c in zip(u.tolist(), i0.tolist(), cap.tolist()):
+        np.minimum(out, np.subtract(r[ui, i : i + n], c, out=tmp), out=out)
+
+
 def core_radius_sq_table(rho_sq, dz, thickness):
     """Squared core radius of a body of revolution under a layer of normal thickness ``thickness``.
 
@@ -72,6 +101,14 @@ def core_radius_sq_table(rho_sq, dz, thickness):
     the table is continuous in t and in the outer shape; the table on the outer grid
     (``core_radius_table``) put the core's apex on a grid row and moved it in steps of dz as t
     changed, a jump of 12 in chi^2 at t = 7.5 px that the silhouette fit stopped on.
+    Computed: core row j reads r at the grid coordinate fl(j + b), b = (t + s) / dz.  With
+    b = B + phi (B = floor(b), phi = b - B, both exact) that is fl((j + B) + phi), a rounding of
+    the same real number, so r there is entry j + B of the one array r(q + phi), q = 0, 1, ...
+    Mathematically every offset inside the disk has the same phi (frac(t / dz)); in floating
+    point they fall on a few values that differ in the last bits.  So r is interpolated once per
+    distinct phi (O(n) each) and each offset is a shifted slice of it, its minimum an elementwise
+    minimum (O(n), no interpolation): bit for bit the numbers of evaluating every (row, offset)
+    pair; 2-20x faster than interpolating every pair for 500-4000 rows and t of 15-150 rows.
     Returns rho_c^2 (0 where there is no core) on z0 + t + j dz, as many rows as ``rho_sq``."""
     rho_sq = np.asarray(rho_sq, float)
     t = float(thickness)
@@ -80,15 +117,17 @@ def core_radius_sq_table(rho_sq, dz, thickness):
     s = dz * np.arange(-k, k + 1)
     s = np.concatenate([[-t], s[np.abs(s) < t], [t]])
     cap = np.sqrt(np.maximum(t * t - s * s, 0.0))
-    base = (t + s) / dz  # grid coordinate of z + s for the core row j = 0
-    out = np.empty(n)
-    # blocks of ~64k table entries: the temporaries stay in the cache (3x faster than 2M-entry
-    # blocks; the same numbers)
-    step = max(1, 65536 // s.size)
-    for j0 in range(0, n, step):
-        f = np.minimum(np.arange(j0, min(n, j0 + step))[:, None] + base[None, :], n - 1.0)
-        i = np.minimum(f.astype(np.intp), n - 2)
-        w = f - i
-        r = np.sqrt(np.maximum(rho_sq[i] * (1.0 - w) + rho_sq[i + 1] * w, 0.0))
-        out[j0 : j0 + step] = (r - cap[None, :]).min(axis=1)
+    b = (t + s) / dz  # grid coordinate of z + s for the core row j = 0 (>= 0)
+    shift = np.floor(b)
+    phi, which = np.unique(b - shift, return_inverse=True)
+    shift = shift.astype(np.intp)
+    out = np.full(n, np.inf)
+    if n == 0:
+        return out
+    q = np.arange(n + shift.max())
+    per = max(1, _BLOCK // q.size)  # fractions interpolated together
+    for u0 in range(0, phi.size, per):
+        r = _radius_at(rho_sq, q + phi[u0 : u0 + per, None])  # r[u - u0, q] at q + phi[u]
+        sel = (which >= u0) & (which < u0 + per)
+        _min_over_offsets(out, r, which[sel] - u0, shift[sel], cap[sel])
     return np.square(np.maximum(out, 0.0))
