@@ -93,6 +93,7 @@ START_STEPS = 3  # LM steps from every screened start; the best is continued
 SCREEN_KEEP = 2  # starts taken into the 2-D fit after the 1-D screen (``_screened_starts``)
 SCREEN_NFEV = 40  # model evaluations of each start's 1-D fit
 SCREEN_MIN_BINS = 8  # bins of the edge profile with data needed for the 1-D screen
+RESIDUALS_KEPT = 16  # residual vectors kept by ``_Coherent.residual``
 _FD = np.array([0.05, 0.5, 0.05, 0.03, 0.02])  # finite-difference steps of (delta, A, ln eta, ln s, ln g)
 _NQ = _FD.size
 
@@ -114,6 +115,7 @@ class _Coherent:
         self._waves = {}  # (delta, eta, g) -> exit wave (complex64) and |psi|^2 at the needed pixels
         self._spectra = {}  # (delta, eta, g, padding) -> FFT of the padded exit wave (A's column reuses it)
         self._fringes = {}  # (delta, A, eta, g) -> dI at the needed pixels (the blur's column reuses it)
+        self._residuals = {}  # bytes of q -> residuals (the screen's candidates are the LM's starts)
         # the pixel map of the fitted curve, made from it alone, and its signed distances: every
         # offset's map is derived from them (``_Problem.offset_map``), whatever was evaluated before
         prob.update_pixel_map(self.c, self.coat, cold=True)
@@ -179,21 +181,24 @@ class _Coherent:
                 widths = ((pad, full[0] - H - pad), (pad, full[1] - W - pad))
                 spectrum = sfft.fft2(np.pad(psi, widths, mode="edge"), workers=1, overwrite_x=True)
                 _keep(self._spectra, skey, spectrum, size=2)
-            spec = self._spectra[skey].copy()
-            spec *= np.exp(1j * np.pi * A * fy2).astype(np.complex64)[:, None]
+            spec = self._spectra[skey] * np.exp(1j * np.pi * A * fy2).astype(np.complex64)[:, None]
             spec *= np.exp(1j * np.pi * A * fx2).astype(np.complex64)[None, :]
             out = sfft.ifft2(spec, workers=1, overwrite_x=True)[pad : pad + H, pad : pad + W].ravel()[self.p.need]
             _keep(self._fringes, key, out.real.astype(float) ** 2 + out.imag.astype(float) ** 2 - psi2, size=5)
         return self._fringes[key]
 
     def residual(self, q):
-        """Weighted residuals at q = (delta px, A px^2, ln(eta / eta0), ln(s / sigma), ln g)."""
-        delta, A, leta, lsig, lg = q
-        g = float(np.exp(lg))
-        T = self.transmission(delta, g)
-        M = T + self.fringe(delta, A, self.eta0 * np.exp(leta), g) if A != 0 else T
-        B = self.p.blurred(M, self.sigma * np.exp(lsig))
-        return (self.p.I - self.p.model(B, self.p.linear(B))) * self.p.w
+        """Weighted residuals at q = (delta px, A px^2, ln(eta / eta0), ln(s / sigma), ln g) (the
+        last ``RESIDUALS_KEPT`` kept: the starts' and the best run's are asked for again)."""
+        key = np.asarray(q, float).tobytes()
+        if key not in self._residuals:
+            delta, A, leta, lsig, lg = q
+            g = float(np.exp(lg))
+            T = self.transmission(delta, g)
+            M = T + self.fringe(delta, A, self.eta0 * np.exp(leta), g) if A != 0 else T
+            B = self.p.blurred(M, self.sigma * np.exp(lsig))
+            _keep(self._residuals, key, (self.p.I - self.p.model(B, self.p.linear(B))) * self.p.w, RESIDUALS_KEPT)
+        return self._residuals[key]
 
     def lm(self, q, iters):
         """Levenberg-Marquardt from q: (q, chi^2, J^T J)."""
@@ -309,8 +314,10 @@ def _screened_starts(prob, st, co, starts, a_max):
         lo = np.array([-40.0, -2.0 * a_max - 5.0, np.log(PHASE_RANGE[0]), -3.0])
         hi = np.array([40.0, 2.0 * a_max + 5.0, np.log(PHASE_RANGE[1]), 3.0])
 
+        cache = {}  # ``_profile_model``'s grids, spectra and images of this profile
+
         def res(q):
-            return (_profile_model(q, dg, kt, t_o, co.eta0, co.sigma, at=dd) - y) / se
+            return (_profile_model(q, dg, kt, t_o, co.eta0, co.sigma, at=dd, cache=cache) - y) / se
 
         fits = [
             least_squares(res, np.clip(q[:4], lo + 1e-9, hi - 1e-9), bounds=(lo, hi), max_nfev=SCREEN_NFEV)
@@ -364,21 +371,32 @@ def _edge_profile(prob, co, st, step=0.25):
     return centres[ok_g], kt, t_o, centres[ok_d], y, se
 
 
-def _profile_model(q, d, kt, t_o, eta0, sigma, at=None, fine=4):
+def _profile_model(q, d, kt, t_o, eta0, sigma, at=None, fine=4, cache=None):
     """The coherent image of the arc-averaged edge (``_edge_profile``) at q = (delta, A, ln(eta /
     eta0), ln(s / sigma)) (``_Coherent.residual``'s parameters): the mean chord profile (kt, t_o at
     the bins ``d``) moved out by delta, its exit wave propagated across the edge in 1-D on a grid of
     ``fine`` samples per px, blurred, at the points ``at`` (default ``d``).  The grid is padded by
     2 |A| + 16 px (at least 64): the kernel spreads the grid's top frequency, 2 cycles/px, over
-    2 |A| px, and a shorter padding wraps it round onto the edge."""
+    2 |A| px, and a shorter padding wraps it round onto the edge.  ``cache`` (a dict, for calls with
+    the same profile and points): the grids, the last spectra of the exit wave and the last unblurred
+    images are kept in it by their parameters' bytes (a finite-difference column in A reuses the
+    spectrum, one in the blur the image; the same numbers)."""
     delta, A, leta, lsig = q
     at = d if at is None else at
+    grids, spectra, images = ({} if cache is None else cache).setdefault("1-D", ({}, {}, {}))
     pad = max(64.0, 2.0 * abs(A) + 16.0)
-    g = np.arange(min(d.min(), at.min()) - pad, max(d.max(), at.max()) + pad, 1.0 / fine)
-    psi = np.exp(
-        -0.5 * np.interp(g - delta, d, kt, right=0.0)
-        + 1j * eta0 * np.exp(leta) * np.interp(g - delta, d, t_o, right=0.0)
-    )
-    f = np.fft.fftfreq(g.size, d=1.0 / fine)
-    image = np.abs(np.fft.ifft(np.fft.fft(psi) * np.exp(1j * np.pi * A * f**2))) ** 2
-    return np.interp(at, g, ndimage.gaussian_filter1d(image, sigma * np.exp(lsig) * fine))
+    if pad not in grids:
+        g = np.arange(min(d.min(), at.min()) - pad, max(d.max(), at.max()) + pad, 1.0 / fine)
+        _keep(grids, pad, (g, np.fft.fftfreq(g.size, d=1.0 / fine) ** 2), size=4)
+    g, f2 = grids[pad]
+    ikey = np.array([pad, delta, A, leta]).tobytes()
+    if ikey not in images:
+        skey = np.array([pad, delta, leta]).tobytes()
+        if skey not in spectra:
+            psi = np.exp(
+                -0.5 * np.interp(g - delta, d, kt, right=0.0)
+                + 1j * eta0 * np.exp(leta) * np.interp(g - delta, d, t_o, right=0.0)
+            )
+            _keep(spectra, skey, np.fft.fft(psi), size=4)
+        _keep(images, ikey, np.abs(np.fft.ifft(spectra[skey] * np.exp(1j * np.pi * A * f2))) ** 2, size=4)
+    return np.interp(at, g, ndimage.gaussian_filter1d(images[ikey], sigma * np.exp(lsig) * fine))

@@ -105,7 +105,8 @@ class _Body:
 
     def _hole(self, xh, zh):
         """(radius, centre) tables of the gap between the first and the last crossing of
-        each level along one half (apex -> outwards), or None if the half is monotone."""
+        each level along one half (apex -> outwards), with the rows whose interpolation can
+        see it (``chords``), or None if the half is monotone."""
         rm = np.maximum.accumulate(zh)
         dip = np.nonzero(zh < rm)[0]
         if dip.size == 0:
@@ -142,9 +143,9 @@ class _Body:
         cen = np.zeros(self.zg.size)
         rad[lv] = np.where(has, 0.5 * np.abs(xb - xa), -1.0)
         cen[lv] = np.where(has, 0.5 * (xa + xb), xa)
-        # levels whose interpolation can see the hole
-        lo, hi = max(0, has_lv[0] - 1), min(self.zg.size - 1, has_lv[-1] + 1)
-        return rad, cen, lo, hi
+        # the rows whose interpolation can see the hole (a radius > 0 at row i or i + 1): elsewhere the
+        # interpolated radius is <= 0 and its chord 0
+        return rad, cen, (rad[:-1] > 0) | (rad[1:] > 0)
 
     def set_coat(self, coat):
         self.coat = float(coat)
@@ -157,31 +158,30 @@ class _Body:
     def chords(self, x, z, core=True):
         """(t_outer, t_core) at tip-frame points (px); t_core only if ``core``."""
         core = core and self.coat > 0
-        below, i, i1, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
-        xx = x - _lerp(self.cen, i, i1, w, w1)
+        below, i, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
+        xx = x - _lerp(self.cen, i, w, w1)
         # rho^2 is interpolated between the table rows, not rho: it is linear in z at a
         # paraboloidal apex and far less curved than rho(z) ~ z^(1/n) on a flatter one, whose
         # radius jumps from 0 to the face within a fraction of a row (rho interpolated
         # linearly put a noise-free coated n 4 apex 0.045 nm off, rho^2 0.01 nm)
-        t_o = _chord_in_place(_lerp(self.rho2, i, i1, w, w1), xx, below)
-        for rad, hc, lo, hi in self.holes:
-            j = np.nonzero((i >= lo) & (i < hi) & ~below)[0]
-            ij, wj = i[j], w[j]
-            r_h = rad[ij] * (1 - wj) + rad[ij + 1] * wj
-            c_h = hc[ij] * (1 - wj) + hc[ij + 1] * wj
-            t_o[j] = np.maximum(t_o[j] - chord(r_h, x[j] - c_h), 0.0)
+        t_o = _chord_in_place(_lerp(self.rho2, i, w, w1), xx, below)
+        for rad, hc, rows in self.holes:
+            # only points with material (where t_o = 0 the hole leaves it 0) on the rows that see the hole
+            j = np.nonzero((t_o > 0) & rows[i])[0]
+            ij, wj, wj1 = i[j], w[j], w1[j]
+            t_o[j] = np.maximum(t_o[j] - chord(_lerp(rad, ij, wj, wj1), x[j] - _lerp(hc, ij, wj, wj1)), 0.0)
         if not core:
             return t_o, t_o
         return t_o, self._core(z, xx)
 
     def core_chords(self, x, z):
         """t_core alone at tip-frame points (px) (the outer body's centre line is needed)."""
-        below, i, i1, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
-        return self._core(z, x - _lerp(self.cen, i, i1, w, w1))
+        below, i, w, w1 = _rows(z, self.zg[0], self.dz, self.zg.size)
+        return self._core(z, x - _lerp(self.cen, i, w, w1))
 
     def _core(self, z, xx):
-        below, i, i1, w, w1 = _rows(z, self.zc0, self.dz, self.rho_c2.size)
-        return _chord_in_place(_lerp(self.rho_c2, i, i1, w, w1), xx, below)
+        below, i, w, w1 = _rows(z, self.zc0, self.dz, self.rho_c2.size)
+        return _chord_in_place(_lerp(self.rho_c2, i, w, w1), xx, below)
 
 
 def _beer_lambert(t_o, t_c, k_o, k_c):
@@ -193,8 +193,14 @@ def _beer_lambert(t_o, t_c, k_o, k_c):
     return np.exp(a, out=a)
 
 
+def _square_of_difference(a, b):
+    """(a - b)^2, in ``a``'s buffer."""
+    a -= b
+    return np.square(a, out=a)
+
+
 def _rows(z, z0, dz, n):
-    """(below the table, row i, i + 1, weight w of row i + 1, 1 - w) of linear interpolation at
+    """(below the table, row i, weight w of row i + 1, 1 - w) of linear interpolation at
     heights ``z`` in a table of ``n`` rows z0 + j dz (clipped to its ends)."""
     f = z - z0
     f /= dz
@@ -202,14 +208,15 @@ def _rows(z, z0, dz, n):
     np.clip(f, 0.0, n - 1.000001, out=f)
     i = f.astype(np.intp)
     f -= i
-    return below, i, i + 1, f, 1 - f
+    return below, i, f, 1 - f
 
 
-def _lerp(table, i, i1, w, w1):
-    """table[i] (1 - w) + table[i + 1] w (``_rows``), in one buffer."""
-    out = table[i]
+def _lerp(table, i, w, w1):
+    """table[i] (1 - w) + table[i + 1] w (``_rows``), in one buffer (row i + 1 read as row i of
+    the table's view from its second row: no index array i + 1)."""
+    out = np.take(table, i)
     out *= w1
-    b = table[i1]
+    b = np.take(table[1:], i)
     b *= w
     out += b
     return out
@@ -287,7 +294,7 @@ class _Problem:
         self.noise = noise
         self.w = np.ones(self.idx.size)
         self.map_c = None
-        self.tiles = _blur_tiles(self.idx, self.shape)
+        self.tiles, self._canvas = _blur_tiles(self.idx, self.shape), np.ones(self.shape)  # ``blurred``'s
 
     def set_reference(self, curve):
         """Reference meridian (S, x, z, nx, nz) and its B-spline basis (knots every D)."""
@@ -344,8 +351,10 @@ class _Problem:
             # old nearest point; pixels whose nearest point lies on the window edge are
             # looked up in a k-d tree
             w = 8
-            cand = np.clip(j_old[:, None] + np.arange(-w, w + 1)[None, :], 0, xs.size - 1)
-            d2 = (xs[cand] - self.px_res[:, None]) ** 2 + (zs[cand] - self.pz_res[:, None]) ** 2
+            cand = j_old[:, None] + np.arange(-w, w + 1)[None, :]
+            np.clip(cand, 0, xs.size - 1, out=cand)
+            d2 = _square_of_difference(np.take(xs, cand), self.px_res[:, None])
+            d2 += _square_of_difference(np.take(zs, cand), self.pz_res[:, None])
             k = np.argmin(d2, axis=1)
             rows = np.arange(k.size)
             j, d = cand[rows, k], np.sqrt(d2[rows, k])
@@ -453,9 +462,8 @@ class _Problem:
         widened by the kernel radius (cut at the rectangle's sides, where the "nearest"
         extension is the rectangle's own): the same numbers at those pixels as one blur of
         the whole rectangle (the separable passes read nothing outside the widened tile)."""
-        img = np.ones(self.shape[0] * self.shape[1])
-        img[self.need] = T
-        img = img.reshape(self.shape)
+        img = self._canvas
+        img.ravel()[self.need] = T  # every needed pixel is written: the same image as a fresh one
         if sigma > 0.05:
             rad, k = _gauss_kernel(sigma)
             H, W = self.shape
@@ -467,7 +475,11 @@ class _Problem:
                 bt[sel] = blk[rr - r0, cc - b0]
         else:
             bt = img.ravel()[self.idx]
-        return np.column_stack([bt, bt * self.rn, bt * self.cn])
+        B = np.empty((bt.size, 3))
+        B[:, 0] = bt
+        np.multiply(bt, self.rn, out=B[:, 1])
+        np.multiply(bt, self.cn, out=B[:, 2])
+        return B
 
     def linear(self, B):
         """Illumination (a, b_row, b_col) by weighted linear least squares (3 x 3 normal equations).
