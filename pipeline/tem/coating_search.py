@@ -16,6 +16,11 @@ BLUR_PER_COAT = 0.28
 # t <= 1.9 sigma_single with no blur at all; layers of weaker contrast widen the blur less
 # (ratio 0.5: t/sigma_single <= 1.7, ratio 0.7: <= 2.4 measured), 0.8 is not accepted anyway
 COAT_PER_BLUR = 2.6
+# the floor of the fitted blur (px; the silhouette fit's bound): phase contrast sharpens the edge of
+# a defocused image, and there the blur sits at it whatever the layer (95 of the 117 used grid images
+# of ``bench_tem_independent``), so the blur leaves no room for a layer (``silhouette_fit``, "A layer
+# read as a fringe")
+BLUR_FLOOR_PX = 0.25
 # thinnest layer that counts as one (px, the smallest start of the search): with the coated model
 # continuous in the thickness, a 1.1 px layer of contrast 0.45 under a 1 px blur absorbed the
 # single-layer model's own error on a noise-free uncoated flat face (chi^2 -19, edge 0.1 nm out)
@@ -56,7 +61,7 @@ def _converge(f2, st, cost1, lim2, max_iter, chunk=3):
     return st, n_it
 
 
-def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
+def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter, blur_room=True):
     """Best physical coated fit and the coating decision (module doc, "Coating").
 
     The coated chi^2 surface has a basin per layer thickness: LM finds the layer only from
@@ -70,6 +75,8 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
     noise.  When the decision is borderline, ``COAT_EXTRA_STARTS`` more starts are tried.
     The decision compares LM solutions (``_Fitter.polish`` notes that LM stops short of the
     optimum, a layered fit further than a single one: the test errs towards no layer).
+    ``blur_room`` False: every thickness of the grid is tried, whatever the blur (the fringe
+    correction's coated alternative, ``silhouette_fit``).
     Returns (state or None, iterations, coating-test dict)."""
     K = f1.K
     cost1 = st1.cost
@@ -77,7 +84,8 @@ def _coating_search(f1, st1, f2, lim2, coat_hint, max_coat, max_iter):
     if coat_hint:
         cands = [float(np.clip(coat_hint, 0.6, max_coat * 0.95))]
     else:
-        cands = [t for t in COAT_GRID_PX if t <= min(max_coat * 0.95, COAT_PER_BLUR * sg1)]
+        room = COAT_PER_BLUR * sg1 if blur_room else np.inf
+        cands = [t for t in COAT_GRID_PX if t <= min(max_coat * 0.95, room)]
     test = {"model": "single", "threshold": COAT_DCHI2, "candidates_px": list(cands)}
     if not cands:
         test["skipped"] = "no room for a layer >= 1.5 px in the single-layer blur"
