@@ -347,6 +347,7 @@ def test_a_light_layer_read_as_a_fringe_is_fitted_as_a_layer(tmp_path):
     g, _ = _graded(tmp_path, p)
     assert not g["lost"], g["lost_reason"]
     assert g["coating_model"] == "coated" and 3.0e-9 < g["coating_found"] < 5.5e-9, g["coating_found"]
+    assert any(f.startswith("a light layer, not a fringe") for f in g["edge_flags"]), g["edge_flags"]  # in words
     assert abs(g["edge_bias"]) < 0.15e-9, g["edge_bias"]  # -1.62 nm read as a fringe; +0.03 nm now
     assert g["n_covered"] and g["pulloff_covered_mc"], (g["dn"], g["sigma_n"])
 

@@ -281,6 +281,7 @@ def _coated_alternative(prob, single, st, fringe, pixel_size):
     if cost2 >= cost1:
         return None
     nm = 1e9 * (pixel_size or float("nan"))
+    test["layer_not_fringe"] = True
     test["note"] = (
         f"a light layer, not a fringe: the one-material fit's fringe correction took lambda x defocus "
         f"{fringe['A_px2'] * nm**2:+.1f} nm^2 (overfocus) and moved the edge {fringe['offset_px'] * nm:+.2f} nm; "
@@ -403,6 +404,8 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
     c, sigma, k_o, k_c, coat = fitter.unpack(st.v)
     K = prob.K
     chi2, stderr, cov_c, flags = _covariances(prob, fitter, st, JTJ, names, coat_test, pixel_size)
+    if coat_test.get("layer_not_fringe"):
+        flags.append(coat_test["note"])
     fringe = fringe or {}
     if fringe.get("applied"):
         # the uniform offset of the coherent rendering moves every edge point; its standard error
