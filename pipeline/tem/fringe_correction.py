@@ -260,7 +260,7 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
     offset_px (uniform outward offset of the edge), offset_sd_px (its noise), model_sd_px (its model
     error, ``MOVE_SD_SHARE`` x |offset|), A_px2 (lambda df / px^2), eta
     (rad/px), sigma_px (blur), attenuation_scale (g), dchi2 (chi^2 decrease against the Beer-Lambert
-    model), applied."""
+    model), chi2 and chi2_beer_lambert (the two), applied."""
     co = _Coherent(prob, fitter, st, pixel_size)
     r0 = co.residual(np.zeros(_NQ))
     chi0 = float(r0 @ r0)
@@ -291,6 +291,8 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
         sigma_px=float(co.sigma * np.exp(q[3])),
         attenuation_scale=float(np.exp(q[4])),
         dchi2=chi0 - cost,
+        chi2=cost,
+        chi2_beer_lambert=chi0,
         applied=bool(chi0 - cost > MIN_DCHI2 and abs(delta) <= bound and np.isfinite(sd)),
     )
 

@@ -59,7 +59,7 @@ can explain the layer as the dark fringe of an overfocus (the wrong sign: grid 1
 ``bench_tem_independent``, 4.4 nm DLC in underfocus, moved 1.6 nm inwards).  Where the correction of
 such a fit (one material, blur at the floor, applied) takes lambda x df < 0, the coated model is
 searched over every layer thickness, polished and rendered coherently as well, and taken if its
-coherent chi^2 is lower (``_coated_alternative``; the coating test's note says so).  Trying every
+coherent chi^2 is lower (``_coated_alternative``; the edge's flags say so).  Trying every
 thickness on every image instead (by the Beer-Lambert chi^2) read the dark fringe of coated tips in
 overfocus as more layer (grid 56: 2.2 nm outward) and cost ~4x; the coherent chi^2 keeps those
 one-material (README, issue 16).
@@ -276,8 +276,8 @@ def _coated_alternative(prob, single, st, fringe, pixel_size):
     prob.map_c = None
     st2, JTJ2, names2 = f2.polish(st2, *lim2)
     fr2 = fringe_offset(prob, f2, st2, pixel_size)
-    cost1 = float(st.res @ st.res) - fringe["dchi2"]
-    cost2 = float(st2.res @ st2.res) - (fr2["dchi2"] if fr2["applied"] else 0.0)
+    cost1 = fringe["chi2"]  # the one-material fit's coherent rendering (applied)
+    cost2 = fr2["chi2"] if fr2["applied"] else fr2["chi2_beer_lambert"]
     if cost2 >= cost1:
         return None
     nm = 1e9 * (pixel_size or float("nan"))
