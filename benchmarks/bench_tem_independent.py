@@ -71,8 +71,10 @@ def _parse_fixed(items):
 
 
 def run_one(args):
-    """Simulate, save, run the stage, grade: one CSV row (dict)."""
-    i, seed0, workdir, fixed, figdir = args
+    """Simulate, save, run the stage, grade: one CSV row (dict).  ``args``: (i, seed0, workdir, fixed,
+    figdir[, defocus_known]); with ``defocus_known`` the stage is told the sign of the image's defocus
+    (``tem.defocus``), as an operator who knows it would."""
+    i, seed0, workdir, fixed, figdir, *known = args
     from pipeline.synth.tem_wave import simulate, write_image
     from pipeline.synth.tem_wave_truth import evaluate_file
 
@@ -84,7 +86,8 @@ def run_one(args):
     path = os.path.join(workdir, f"img_{i:04d}.{'png' if fmt == 'png' else 'tif'}")
     write_image(path, img, p.pixel_size)
     fig = os.path.join(figdir, f"image_{i:04d}.png") if figdir else None
-    g = evaluate_file(path, truth, pixel_size=p.pixel_size if fmt == "png" else None, figure=fig)
+    defocus = ("underfocus" if p.defocus > 0 else "overfocus") if known and known[0] and p.defocus else "auto"
+    g = evaluate_file(path, truth, pixel_size=p.pixel_size if fmt == "png" else None, figure=fig, defocus=defocus)
     os.remove(path)
     apex_parts = [q for q in truth["particles"] if q["kind"] == "apex"]
     row = dict(
@@ -286,6 +289,11 @@ def main(argv=None):
         help="hold a draw_params keyword for every image (repeatable), e.g. --fix defocus=0 "
         "--fix layer=none --fix apex_particles=False (SI units)",
     )
+    ap.add_argument(
+        "--defocus-known",
+        action="store_true",
+        help="tell the stage the sign of each image's defocus (tem.defocus: underfocus / overfocus)",
+    )
     a = ap.parse_args(argv)
     n = 12 if a.quick else a.n
     t0 = time.perf_counter()
@@ -294,14 +302,15 @@ def main(argv=None):
         fixed = _parse_fixed(a.fix)
         if a.figures:
             os.makedirs(a.figures, exist_ok=True)
-        jobs = [(i, a.seed0, tmp, fixed, a.figures) for i in range(n)]
+        jobs = [(i, a.seed0, tmp, fixed, a.figures, a.defocus_known) for i in range(n)]
         for r in map_images(run_one, jobs, a.jobs):
             rows.append(r)
             _progress(r, a.verbose)
     wall = time.perf_counter() - t0
     print(
         f"\n{n} independent-simulator images through the current TEM stage + stage 2 "
-        f"(wall {wall:.0f} s on {a.jobs} process(es)){'; held: ' + ', '.join(a.fix) if a.fix else ''}\n"
+        f"(wall {wall:.0f} s on {a.jobs} process(es)){'; held: ' + ', '.join(a.fix) if a.fix else ''}"
+        f"{'; the defocus sign given' if a.defocus_known else ''}\n"
     )
     print_table(rows)
     used = [r for r in rows if not r["lost"]]

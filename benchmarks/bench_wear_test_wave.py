@@ -10,13 +10,15 @@ particles, slight asymmetric wear; imaging drawn per session) and run through st
 (``pipeline.synth.wave_shapes``), then stages 3-5 as in ``bench_calibration_coverage``.
 ``--shapes drawn`` runs the same tips with the fits drawn around the truth as stage 2 reports
 them on the sample images (that bench's rigid row): the difference is the TEM stage's share.
+``--shapes wave_known`` images them as ``wave`` does and gives stage 1 the sign of every image's
+defocus (``tem.defocus``), as an operator who knows it would.
 
 Prints one line per tip (h and W_A errors, covered or not, interval half-width, intervals lost,
 the worn intervals' n against the truth in units of their sigma_n) and a summary; writes the
 rows to ``--csv``.  Never fails on time or accuracy.
 
     python benchmarks/bench_wear_test_wave.py [tips, default 24] [--seed0 1000] [--jobs 2]
-        [--shapes wave|drawn] [--csv out.csv] [--intervals-csv intervals.csv]
+        [--shapes wave|wave_known|drawn] [--csv out.csv] [--intervals-csv intervals.csv]
 """
 
 from __future__ import annotations
@@ -107,7 +109,7 @@ def main(argv=None):
     ap.add_argument("tips", nargs="?", type=int, default=24)
     ap.add_argument("--seed0", type=int, default=1000)
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--shapes", choices=("wave", "drawn"), default="wave")
+    ap.add_argument("--shapes", choices=("wave", "wave_known", "drawn"), default="wave")
     ap.add_argument("--csv")
     ap.add_argument("--intervals-csv", help="one row per interval: the true and fitted n, sigma_n, imaging, flags")
     a = ap.parse_args(argv)

@@ -51,6 +51,7 @@ def cmd_profiles(a):
         coating=tip["tem"]["coating"],
         refine=tip["tem"]["refine"],
         fringe_correction=tip["tem"]["fringe_correction"],
+        defocus=iv.get("defocus", tip["tem"]["defocus"]),
         tip=tip["name"],
         interval=iv["name"],
     )

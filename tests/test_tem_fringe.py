@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 
-def _profile(defocus, fringe_correction=True):
+def _profile(defocus, fringe_correction=True, defocus_given="auto"):
     from pipeline.synth.tem_wave import draw_params, simulate
     from pipeline.synth.tem_wave_truth import edge_errors
     from pipeline.tem.profiles import extract_profile
@@ -30,7 +30,8 @@ def _profile(defocus, fringe_correction=True):
         R=12e-9,
     )
     img, truth = simulate(p)
-    prof = extract_profile(TemImage(img.astype(float), p.pixel_size, "synthetic"), fringe_correction=fringe_correction)
+    image = TemImage(img.astype(float), p.pixel_size, "synthetic")
+    prof = extract_profile(image, fringe_correction=fringe_correction, defocus=defocus_given)
     sel = (prof.z >= 0.0) & (prof.z <= 10e-9)
     err = edge_errors(prof.edge_px, truth, sel)
     return prof, err, truth, p
@@ -217,12 +218,13 @@ def test_edge_profile_keeps_the_body_where_the_vacuum_is_clipped(fitted_problem)
     assert len(kept) == 2 and all(any(np.array_equal(k, q) for q in starts) for k in kept)
 
 
-def _graded(tmp_path, p):
-    """The independent wave-optical image of ``p`` through the stage, graded against its true
-    silhouette (``wave_images.graded_wave_image``), and the correction's flag."""
+def _graded(tmp_path, p, **kw):
+    """The independent wave-optical image of ``p`` through the stage (``kw``: ``evaluate_file``'s, e.g.
+    ``defocus``), graded against its true silhouette (``wave_images.graded_wave_image``), and the
+    correction's flag."""
     from wave_images import graded_wave_image
 
-    g = graded_wave_image(tmp_path, p)
+    g = graded_wave_image(tmp_path, p, **kw)
     return g, [f for f in g["edge_flags"] if f.startswith("defocus fringes: edge moved")]
 
 
@@ -352,13 +354,9 @@ def test_a_light_layer_read_as_a_fringe_is_fitted_as_a_layer(tmp_path):
     assert g["n_covered"] and g["pulloff_covered_mc"], (g["dn"], g["sigma_n"])
 
 
-def test_a_wrong_sign_of_the_defocus_is_covered_by_the_move(tmp_path):
-    """Grid image 100 (``bench_tem_independent``, its parameters exactly): a 2.0 nm oxide of 29 %
-    contrast, 0.50 um underfocus, 0.34 nm px, read as one material (no coated fit is found, also with
-    every thickness tried).  Its fringe correction takes the wrong sign (lambda x df -1.5 nm^2) and moves
-    an edge that lay 0.19 nm outside 0.76 nm inwards, where its noise SD (0.00 nm) and the model-error
-    term (0.24 nm) did not cover it.  Half the move as the correction's model error covers it; the
-    edge itself stays wrong (found and left open: README)."""
+def _grid_100():
+    """Grid image 100 of ``bench_tem_independent``, its parameters exactly: a 2.0 nm oxide of 29 %
+    contrast, 0.50 um underfocus, 0.34 nm px, SNR 22."""
     from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
 
     parts = (
@@ -388,6 +386,17 @@ def test_a_wrong_sign_of_the_defocus_is_covered_by_the_move(tmp_path):
         psf_tail_length=4.503596515948592, illumination_gradient=0.005791926243876704,
         gradient_angle_deg=188.6834963883052, vignetting=0.0546550515530424, seed=100,
     )  # fmt: skip
+    return p
+
+
+def test_a_wrong_sign_of_the_defocus_is_covered_by_the_move(tmp_path):
+    """Grid image 100 (``bench_tem_independent``, its parameters exactly): a 2.0 nm oxide of 29 %
+    contrast, 0.50 um underfocus, 0.34 nm px, read as one material (no coated fit is found, also with
+    every thickness tried).  Its fringe correction takes the wrong sign (lambda x df -1.5 nm^2) and moves
+    an edge that lay 0.19 nm outside 0.76 nm inwards, where its noise SD (0.00 nm) and the model-error
+    term (0.24 nm) did not cover it.  Half the move as the correction's model error covers it; the
+    edge itself stays wrong (found and left open: README)."""
+    p = _grid_100()
     g, flag = _graded(tmp_path, p)
     assert not g["lost"], g["lost_reason"]
     assert flag and "lambda x defocus -" in flag[0] and "half the move" in flag[0], flag  # the wrong sign
@@ -395,6 +404,81 @@ def test_a_wrong_sign_of_the_defocus_is_covered_by_the_move(tmp_path):
     assert move < -0.5e-9 and g["edge_bias"] < -0.4e-9, (move, g["edge_bias"])  # the known fault, as found
     assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"], (g["edge_bias"], g["edge_bias_sd"])
     assert g["edge_bias_sd"] >= 0.5 * abs(move)
+
+
+def test_the_sign_given_keeps_the_fringes_to_it(tmp_path):
+    """Grid image 100 again, with the operator's ``tem.defocus: underfocus``: the fit of both signs still
+    takes overfocus (-1.5 nm^2, the oxide read as the dark fringe), the flag says so, and the fringes
+    fitted at the given sign (+0.9 nm^2 against the true +1.3 nm^2) move the edge only 0.12 nm: it lies
+    +0.07 nm from the true silhouette (-0.57 nm without the sign), within its SD."""
+    g, flag = _graded(tmp_path, _grid_100(), defocus="underfocus")
+    assert not g["lost"], g["lost_reason"]
+    against = [f for f in g["edge_flags"] if f.startswith("defocus given as underfocus")]
+    assert against and "took lambda x defocus -" in against[0] and "(overfocus;" in against[0], g["edge_flags"]
+    assert flag and "lambda x defocus +" in flag[0] and "the sign of the defocus was given (underfocus)" in flag[0]
+    assert abs(g["edge_bias"]) < 0.2e-9, g["edge_bias"]
+    assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"], (g["edge_bias"], g["edge_bias_sd"])
+
+
+def test_the_sign_given_that_the_fit_finds_changes_nothing(defocused):
+    """Where the fit of both signs takes the sign given (the defocused image: 1.5 um overfocus), nothing
+    more is done: the same edge to the last bit; only the flag's words say the sign was given."""
+    prof = defocused[0]
+    given = _profile(-1.5e-6, defocus_given="overfocus")[0]
+    assert np.array_equal(given.edge_px, prof.edge_px)
+    assert np.array_equal(given.offset_cov, prof.offset_cov)
+    assert given.edge_model["global_fringe"]["sign"] == -1 and prof.edge_model["global_fringe"]["sign"] == 0
+    words = [f for f in given.edge_model["global_flags"] if f.startswith("defocus fringes")]
+    assert words and "the sign of the defocus was given (overfocus)" in words[0]
+    assert not any(f.startswith("defocus given as") for f in given.edge_model["global_flags"])
+
+
+def test_fringes_are_fitted_at_the_sign_given(fitted_problem):
+    """``fringe_offset(..., sign=...)`` keeps lambda x df on the side given, its starts, its 1-D screen
+    and its steps: on the 1.5 um overfocus image, the wrong sign given (+1) ends at A >= 0 and fits worse
+    than the right one (-1), which ends where the fit of both signs does."""
+    from pipeline.tem.fringe_correction import fringe_offset
+
+    free = fringe_offset(*fitted_problem)
+    right = fringe_offset(*fitted_problem, sign=-1)
+    wrong = fringe_offset(*fitted_problem, sign=+1)
+    assert free["A_px2"] < 0 and right["A_px2"] <= 0.0 and wrong["A_px2"] >= 0.0
+    assert (right["sign"], wrong["sign"], free["sign"]) == (-1, 1, 0)
+    assert wrong["chi2"] > right["chi2"]
+    # here lower (79491 against 80510): fewer starts, another basin of the same sign, the offset 0.16 px
+    # (0.05 nm) apart
+    assert right["chi2"] <= free["chi2"] * (1 + 1e-3)
+    assert right["offset_px"] == pytest.approx(free["offset_px"], abs=0.3)
+
+
+def test_defocus_sign_is_in_the_tip_schema(tmp_path, monkeypatch):
+    """``tem.defocus`` (auto by default) and an interval's own ``defocus``: auto, underfocus or overfocus;
+    anything else is refused naming the field, and ``extract_profile`` refuses it too."""
+    from pipeline.config import ConfigError, load_tip_config
+    from pipeline.tem.profiles import extract_profile
+    from pipeline.tem.reading import TemImage
+
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+    src = (root / "config" / "tips" / "tipB_Si.yaml").read_text()
+    ok = tmp_path / "t.yaml"
+    given = src.replace("tem:", "tem:\n  defocus: underfocus", 1)
+    ok.write_text(given.replace("  scans: 0\n", "  scans: 0\n  defocus: overfocus\n", 1))
+    tip = load_tip_config(ok)
+    assert tip["tem"]["defocus"] == "underfocus" and tip["intervals"][0]["defocus"] == "overfocus"
+    plain = tmp_path / "p.yaml"
+    plain.write_text(src)
+    assert load_tip_config(plain)["tem"]["defocus"] == "auto"
+    for bad_src in (
+        src.replace("tem:", "tem:\n  defocus: under", 1),
+        src.replace("  scans: 0\n", "  scans: 0\n  defocus: -1.2 um\n", 1),
+    ):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(bad_src)
+        with pytest.raises(ConfigError, match="defocus"):
+            load_tip_config(bad)
+    with pytest.raises(ValueError, match="defocus must be one of auto, underfocus, overfocus"):
+        extract_profile(TemImage(np.ones((64, 64)), 0.3e-9, "synthetic"), defocus="+1 um")
 
 
 @pytest.mark.xfail(

@@ -53,7 +53,7 @@ def test_an_unusable_reference_leaves_the_tip_without_an_h_and_a_raising_stage_d
     from pipeline.synth import calibration_study as cs
     from pipeline.synth.stage_inputs import write_synthetic_fit
 
-    def fake_fit(p, fit_h5, workdir, S, h):
+    def fake_fit(p, fit_h5, workdir, S, h, defocus_known=False):
         if p.n > 2 and p.seed % 16 == 2:
             return dict(n_true=p.n, area_factor=1.0, raised=True, lost=True, lost_reason="ValueError: stub")
         flags = ("edge_is_core",) if p.n == 2 else ("",)
@@ -73,5 +73,5 @@ def test_an_unusable_reference_leaves_the_tip_without_an_h_and_a_raising_stage_d
 def test_an_unknown_shape_source_is_refused_in_words():
     from pipeline.synth.calibration_study import draw_case, run_case
 
-    with pytest.raises(ValueError, match=r"shapes must be 'drawn' or 'wave', got 'Wave'"):
+    with pytest.raises(ValueError, match=r"shapes must be 'drawn', 'wave' or 'wave_known', got 'Wave'"):
         run_case(draw_case(3, "rigid"), shapes="Wave")

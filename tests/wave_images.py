@@ -27,12 +27,13 @@ def clean_tip(seed, layer, pixel_size, side, **kw):
     return TemImage(img.astype(float), p.pixel_size, "synthetic"), truth, p
 
 
-def graded_wave_image(tmp_path, p):
+def graded_wave_image(tmp_path, p, **kw):
     """Render the independent wave-optical image of parameters ``p``, save it as ``tmp_path/img.tif``
-    and grade the stage's profile of it against the true silhouette (``tem_wave_truth.evaluate_file``)."""
+    and grade the stage's profile of it against the true silhouette (``tem_wave_truth.evaluate_file``,
+    with ``kw``, e.g. the tip YAML's ``defocus``)."""
     from pipeline.synth.tem_wave import simulate, write_image
     from pipeline.synth.tem_wave_truth import evaluate_file
 
     img, truth = simulate(p)
     write_image(tmp_path / "img.tif", img, p.pixel_size)
-    return evaluate_file(tmp_path / "img.tif", truth)
+    return evaluate_file(tmp_path / "img.tif", truth, **kw)

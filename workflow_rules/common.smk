@@ -104,7 +104,10 @@ RULE_CODE = {name: code_version(*modules) for name, modules in RULE_MODULES.item
 # `cantilever:` reruns forces -> inversion -> range, not profiles or fits, and other tips not at
 # all; editing the h grid, the laws, the solver mode or the Monte Carlo reruns every inversion).
 STAGE_KEYS = {
-    "profiles": ("tem", ("pixel_size", "orientation", "profile_height", "coating", "refine", "fringe_correction")),
+    "profiles": (
+        "tem",
+        ("pixel_size", "orientation", "profile_height", "coating", "refine", "fringe_correction", "defocus"),
+    ),
     "fits": ("tem", ("fit_height", "S")),
     "forces": (None, ("cantilever", "force_curves")),
     "inversion": (None, ("materials", "reference_intervals")),
@@ -126,6 +129,8 @@ def stage_settings(stage):
         if stage == "forces":  # the interval's own InvOLS settings
             iv = interval_cfg(wildcards)
             picked["interval"] = {k: iv.get(k) for k in INTERVAL_FORCE_KEYS}
+        if stage == "profiles" and interval_cfg(wildcards).get("defocus"):  # the interval's own defocus
+            picked["interval_defocus"] = interval_cfg(wildcards)["defocus"]
         return json.dumps(picked, sort_keys=True, default=str)
 
     return settings

@@ -209,7 +209,8 @@ def run_case(
     shape, ``_observed_shape``) or ``wave`` (every interval imaged by the wave-optical TEM
     simulator and measured by stages 1 and 2, ``pipeline.synth.wave_shapes``: the whole workflow
     on data it did not generate; an interval whose stage raises is left out, as a user would,
-    and a lost reference ends the case with status ``reference lost``).  Returns a dict of the
+    and a lost reference ends the case with status ``reference lost``) or ``wave_known`` (the same,
+    the operator giving stage 1 the sign of every image's defocus, ``tem.defocus``).  Returns a dict of the
     errors and the coverage of the 95 % intervals; ``fp_err_max`` is the worst interval F_p (as
     stage 4 uses it, after the contact compliance correction) against the weighted truth of the
     curves used; ``shape_records`` (wave) the stage-2 result of every interval."""
@@ -220,19 +221,22 @@ def run_case(
     F = true_forces(case) * case.bias
     cant = cantilever or {"spring_constant": case.k, "spring_constant_uncertainty": case.u_k_rel * case.k}
     lever, inst = _instrument(case, np.random.default_rng([case.seed, 0x1257]))
-    if shapes not in ("drawn", "wave"):
-        raise ValueError(f"run_case: shapes must be 'drawn' or 'wave', got {shapes!r}")
-    materials = wave_shapes.tip_materials(case.seed) if shapes == "wave" else None
+    if shapes not in ("drawn", "wave", "wave_known"):
+        raise ValueError(f"run_case: shapes must be 'drawn', 'wave' or 'wave_known', got {shapes!r}")
+    wave = shapes != "drawn"
+    materials = wave_shapes.tip_materials(case.seed) if wave else None
     with _workdir(workdir) as root:
         cant = {**cant, "base_dir": str(root)}
         fits, forces, ivs, truth_F, shape_records = {}, {}, [], {}, []
         for i, (n, Fi) in enumerate(zip(case.n, F)):
             nm = f"i{i}"
             fits[nm] = str(root / "fits" / f"{nm}.h5")
-            if shapes == "wave":  # imaged and measured first: the image's area sets the true force
+            if wave:  # imaged and measured first: the image's area sets the true force
                 p = wave_shapes.interval_params(case.seed, i, n, case.R, case.S, materials)
                 Path(fits[nm]).parent.mkdir(parents=True, exist_ok=True)
-                rec = wave_shapes.wave_interval_fit(p, fits[nm], root, case.S, case.h)
+                rec = wave_shapes.wave_interval_fit(
+                    p, fits[nm], root, case.S, case.h, defocus_known=shapes == "wave_known"
+                )
                 shape_records.append(dict(rec, interval=nm, reference=i == 0))
                 if rec["raised"]:  # the stage raised: the interval is dropped
                     del fits[nm]
@@ -243,7 +247,7 @@ def run_case(
             forces[nm], truth_F[nm] = _interval_forces(
                 case, i, n, Fi, root, rng, generator, (lever, inst), cant, oracle_invols
             )
-            if shapes != "wave":
+            if not wave:
                 _drawn_fit(case, i, n, fits[nm], rng)
             ivs.append({"name": nm, "scans": 10 * i, "reference": i == 0})
         if "i0" not in fits:

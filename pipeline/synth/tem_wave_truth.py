@@ -253,12 +253,14 @@ def lost_record(reason):
     return dict(lost=True, lost_reason=reason)
 
 
-def evaluate_file(image_path, truth, pixel_size=None, workdir=None, fit_height=6e-9, S=1.0, figure=None):
+def evaluate_file(
+    image_path, truth, pixel_size=None, workdir=None, fit_height=6e-9, S=1.0, figure=None, defocus="auto"
+):
     """Run ``image_path`` through the workflow path (module doc) and grade it.
 
     ``pixel_size`` (m) is what a tip YAML would give (used only for files without a
-    calibration); ``figure``: a PNG path for ``plot_comparison``.  Returns the ``grade``
-    dict (or a lost record) plus ``t_stage`` (s: read, profile, fit) and ``t_profile``
+    calibration), and ``defocus`` its ``tem.defocus``; ``figure``: a PNG path for ``plot_comparison``.
+    Returns the ``grade`` dict (or a lost record) plus ``t_stage`` (s: read, profile, fit) and ``t_profile``
     (s: extract_profile alone)."""
     from pipeline.fits import FitError
     from pipeline.fits.io import read_fit
@@ -272,7 +274,7 @@ def evaluate_file(image_path, truth, pixel_size=None, workdir=None, fit_height=6
         try:
             image = read_tem_image(image_path, pixel_size)
             t1 = time.perf_counter()
-            profile = extract_profile(image)
+            profile = extract_profile(image, defocus=defocus)
             t_prof = time.perf_counter() - t1
             h5p, h5f = Path(tmp) / "profile.h5", Path(tmp) / "fit.h5"
             write_profile_h5(h5p, image, profile)

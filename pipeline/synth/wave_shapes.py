@@ -65,9 +65,10 @@ def interval_params(seed: int, interval: int, n: float, R: float, S: float, mate
     return p
 
 
-def wave_interval_fit(p, fit_h5, workdir, S: float, h: float) -> dict:
-    """Render ``p``, run stages 1 and 2 on it (the workflow defaults) and write the stage-2
-    file ``fit_h5``.  Returns a record: ``area_factor`` (true section area at the adhesion range
+def wave_interval_fit(p, fit_h5, workdir, S: float, h: float, defocus_known=False) -> dict:
+    """Render ``p``, run stages 1 and 2 on it (the workflow defaults; with ``defocus_known`` stage 1
+    is given the sign of the image's defocus, ``tem.defocus``) and write the stage-2 file ``fit_h5``.
+    Returns a record: ``area_factor`` (true section area at the adhesion range
     ``h`` (m) over pi r_axi(h)^2 of the axisymmetric power law), the true and fitted n, sigma_n,
     the flags, ``lost`` and its reason, ``raised`` (the stage raised: no fit file)."""
     from pipeline.fits.io import read_fit
@@ -95,7 +96,8 @@ def wave_interval_fit(p, fit_h5, workdir, S: float, h: float) -> dict:
         write_image(path, img, p.pixel_size)
         try:
             image = read_tem_image(path, None)
-            profile = extract_profile(image)
+            sign = ("underfocus" if p.defocus > 0 else "overfocus") if defocus_known and p.defocus else "auto"
+            profile = extract_profile(image, defocus=sign)
             write_profile_h5(Path(tmp) / "profile.h5", image, profile)
             run_fit(Path(tmp) / "profile.h5", fit_h5, fit_height=FIT_HEIGHT, S=S)
         except Exception as exc:  # noqa: BLE001 - any failure of the stage: the user drops the interval

@@ -65,6 +65,15 @@ edge-offset coverage 88.0 / 91.5 / 89.3 % -> 92.3 / 91.5 / 91.1 % (the DLC set's
 anyway), median edge SD 0.33 / 0.31 / 0.27 -> 0.51 / 0.49 / 0.33 nm; sigma_n, the coverage of n and
 of the pull-off unchanged (stage 2's apex and Q take up a common offset).  Over the 153 (grades of
 the same runs, recomputed), a share of 0.3 / 0.4 / 0.5 covered 3 / 5 / 7 more edges than none.
+
+Why chi^2 cannot tell the sign, and the sign given.  A real exit wave (a body that only absorbs)
+propagated by +df and -df gives complex-conjugate waves (the kernel is even in f; spherical
+aberration, which does not change sign, breaks this only slightly), so the same intensity: the image's
+dependence on the sign of the defocus comes from the phase eta t alone, i.e. from where the body is
+thin enough to pass electrons, the edge's outermost nanometres, which is where a light layer lies.
+The vacuum's fringes further out carry no sign.  So the sign is what the microscope's operator knows
+and the image may not show: ``sign`` +1 (underfocus, A >= 0) or -1 (overfocus, A <= 0) keeps the
+fit to that sign (its starts, its 1-D screen and its LM steps); 0 (the default) fits both.
 """
 
 from __future__ import annotations
@@ -101,8 +110,9 @@ _NQ = _FD.size
 class _Coherent:
     """The coherent rendering of one fitted silhouette (module doc) on its problem's pixels."""
 
-    def __init__(self, prob, fitter, st, pixel_size):
+    def __init__(self, prob, fitter, st, pixel_size, sign=0):
         self.p = prob
+        self.sign = int(np.sign(sign))  # the defocus's sign given: A kept >= 0 (+1) or <= 0 (-1); 0 both
         self.c, self.sigma, self.k_o, self.k_c, self.coat = fitter.unpack(st.v)
         H, W = prob.shape
         r0, c0 = prob.origin
@@ -212,6 +222,8 @@ class _Coherent:
                 dq = np.clip(-np.linalg.solve(JTJ + lam * np.diag(np.diag(JTJ) + 1e-12), g), -lim, lim)
                 qn = q + dq
                 qn[2] = np.clip(qn[2], *np.log(PHASE_RANGE))
+                if self.sign:
+                    qn[1] = self.sign * max(self.sign * qn[1], 0.0)
                 rn = self.residual(qn)
                 if float(rn @ rn) < cost:
                     gain = cost - float(rn @ rn)
@@ -226,9 +238,11 @@ class _Coherent:
         return q, cost, JTJ
 
     def jacobian(self, q, r=None):
-        """Forward-difference Jacobian of ``residual`` at q (steps ``_FD``)."""
+        """Forward-difference Jacobian of ``residual`` at q (steps ``_FD``; the step in A towards the
+        sign given, so that it stays on that side of 0)."""
         r = self.residual(q) if r is None else r
-        return np.column_stack([(self.residual(q + e * h) - r) / h for e, h in zip(np.eye(_NQ), _FD)])
+        fd = _FD if self.sign >= 0 else _FD * np.array([1.0, -1.0, 1.0, 1.0, 1.0])
+        return np.column_stack([(self.residual(q + e * h) - r) / h for e, h in zip(np.eye(_NQ), fd)])
 
 
 def _keep(cache, key, value, size=3):
@@ -255,19 +269,22 @@ def _offset_sd(JTJ, scale):
     return float(np.sqrt(var)) if np.isfinite(var) and var >= 0 else float("nan")
 
 
-def fringe_offset(prob, fitter, st, pixel_size, iters=10):
-    """Fit of the coherent rendering of the fitted silhouette ``st`` (module doc).  Returns a dict:
+def fringe_offset(prob, fitter, st, pixel_size, iters=10, sign=0):
+    """Fit of the coherent rendering of the fitted silhouette ``st`` (module doc), at either sign of
+    the defocus (``sign`` 0) or at the sign given (+1 underfocus, -1 overfocus).  Returns a dict:
     offset_px (uniform outward offset of the edge), offset_sd_px (its noise), model_sd_px (its model
     error, ``MOVE_SD_SHARE`` x |offset|), A_px2 (lambda df / px^2), eta
     (rad/px), sigma_px (blur), attenuation_scale (g), dchi2 (chi^2 decrease against the Beer-Lambert
-    model), chi2 and chi2_beer_lambert (the two), applied."""
-    co = _Coherent(prob, fitter, st, pixel_size)
+    model), chi2 and chi2_beer_lambert (the two), sign (the sign given, 0 if none), applied."""
+    co = _Coherent(prob, fitter, st, pixel_size, sign)
     r0 = co.residual(np.zeros(_NQ))
     chi0 = float(r0 @ r0)
     a_max = LAMBDA_DF_MAX / float(pixel_size or 0.25e-9) ** 2
     ls0 = float(np.log(0.5 / co.sigma)) if co.sigma > 0.6 else 0.0  # the fit's blur took part of the fringe
     starts = [np.zeros(_NQ)]
     for fa in START_FRACTIONS:
+        if fa * co.sign < 0:
+            continue  # the other sign than the one given
         A = fa * a_max
         # the fringe shifts the transmission edge outwards by up to ~sqrt(|A|) (more in overfocus)
         starts.append(np.array([-(0.8 if A < 0 else 0.3) * np.sqrt(abs(A)), A, 0.0, ls0, 0.0]))
@@ -293,6 +310,7 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10):
         dchi2=chi0 - cost,
         chi2=cost,
         chi2_beer_lambert=chi0,
+        sign=co.sign,
         applied=bool(chi0 - cost > MIN_DCHI2 and abs(delta) <= bound and np.isfinite(sd)),
     )
 
@@ -315,6 +333,10 @@ def _screened_starts(prob, st, co, starts, a_max):
         dg, kt, t_o, dd, y, se = prof
         lo = np.array([-40.0, -2.0 * a_max - 5.0, np.log(PHASE_RANGE[0]), -3.0])
         hi = np.array([40.0, 2.0 * a_max + 5.0, np.log(PHASE_RANGE[1]), 3.0])
+        if co.sign > 0:
+            lo[1] = 0.0
+        elif co.sign < 0:
+            hi[1] = 0.0
 
         cache = {}  # ``_profile_model``'s grids, spectra and images of this profile
 

@@ -152,6 +152,15 @@ def _write_fringe(g, fr, px):
     w(g, "fringe_lambda_defocus", fr["A_px2"] * px**2, "m^2", "wavelength x defocus fitted (> 0 underfocus)")
     w(g, "fringe_attenuation_scale", fr["attenuation_scale"], "1", "common scale of the attenuations fitted with it")
     w(g, "fringe_dchi2", fr["dchi2"], "1", "chi^2(Beer-Lambert) - chi^2(coherent rendering)")
+    g.attrs["fringe_defocus_sign_given"] = int(fr.get("sign", 0))  # +1 underfocus, -1 overfocus, 0 not given
+    if "free_A_px2" in fr:
+        w(
+            g,
+            "fringe_free_lambda_defocus",
+            fr["free_A_px2"] * px**2,
+            "m^2",
+            "wavelength x defocus the fit of both signs took, against the sign given (then refitted at that sign)",
+        )
 
 
 def _write_coating_test(g, ct, px):

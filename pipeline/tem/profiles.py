@@ -157,7 +157,9 @@ def _window_and_contour(img, coarse, hpx, path, px, background=None):
     return win, origin, flat, noise, cont, frame, saturated
 
 
-def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction=True, saturated=None):
+def _refined_edge(
+    win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fringe_correction=True, saturated=None, defocus_sign=0
+):
     """(edge points, symmetry frame, edge model, extra edge-model entries, (basis, cov_c, normals) or
     None) of ``extract_profile``: the global silhouette fit, or the per-normal fits where it is not
     asked for or fails.  ``saturated``: the window's clipped pixels (censored in the global fit)."""
@@ -177,6 +179,7 @@ def _refined_edge(win, flat, noise, cont, frame, hpx, px, coat_hint, refine, fri
                 coat_hint=coat_hint,
                 fringe_correction=fringe_correction,
                 censored=saturated,
+                defocus_sign=defocus_sign,
             )
         except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # fall back to per-normal fits
             extra = dict(refine="normals", global_flags=[f"global fit failed: {exc}"])
@@ -251,7 +254,8 @@ def _with_offset_columns(uncertainty, new_basis, normals, columns, sds):
 def _fit_from_start(win, flat, noise, cont, frame, fit_args, background):
     """``_refined_edge`` from the start contour ``cont``; where that was a lower level than the first
     (``start_contour``) and the fit found no edge there, from the folded first contour after all
-    (``background`` says which). ``fit_args``: (hpx, px, coat_hint, refine, fringe_correction, saturated)."""
+    (``background`` says which). ``fit_args``: (hpx, px, coat_hint, refine, fringe_correction, saturated,
+    defocus sign)."""
     fit = _refined_edge(win, flat, noise, cont, frame, *fit_args)
     if background["folded"] is not None and _no_fit(fit[3], fit_args[3]):
         fit = _refined_edge(win, flat, noise, background["folded"], frame, *fit_args)
@@ -470,19 +474,39 @@ def _in_image(pts, frame, origin, flipped, n_rows):
     return pts_img, apex_img, axis, angle
 
 
+DEFOCUS_SIGNS = {"auto": 0, "underfocus": 1, "overfocus": -1}  # tem.defocus -> the fit's defocus_sign
+
+
+def _defocus_sign(refine, defocus):
+    """+1 (underfocus), -1 (overfocus) or 0 (auto) of the tip YAML's ``tem.defocus``, after checking it
+    and ``refine``."""
+    if refine not in ("normals", "global"):
+        raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
+    if defocus not in DEFOCUS_SIGNS:
+        raise ValueError(f"defocus must be one of {', '.join(DEFOCUS_SIGNS)}, got {defocus!r}")
+    return DEFOCUS_SIGNS[defocus]
+
+
 def extract_profile(
-    image: TemImage, orientation="auto", profile_height=20e-9, coating="auto", refine="global", fringe_correction=True
+    image: TemImage,
+    orientation="auto",
+    profile_height=20e-9,
+    coating="auto",
+    refine="global",
+    fringe_correction=True,
+    defocus="auto",
 ) -> TipProfile:
     """Sub-pixel silhouette of the tip in ``image`` and its flanks z(r) (see module doc).
 
     ``refine``: "normals" (per-normal model fits, ``edges.refine_edges``) or "global" (one global fit
     of all edge pixels, ``silhouette_fit.fit_silhouette``, on b x b blocks of pixels finer than 0.2 nm);
-    ``fringe_correction``: its defocus-fringe correction (``pipeline.tem.fringe_correction``) on/off.
+    ``fringe_correction``: its defocus-fringe correction (``pipeline.tem.fringe_correction``) on/off;
+    ``defocus``: "auto", or the sign of the defocus as the operator knows it, "underfocus" or
+    "overfocus" (``silhouette_fit``, "The sign of the defocus given").
     After the global fit, a faint layer seen beyond the edge on each flank alone (``faint_layer``)
     moves the edge out by the layer's thickness read from the image (``outer_layer``), or, where that
     cannot be read at the apex, marks the profile the core's (``edge_is_core``)."""
-    if refine not in ("normals", "global"):
-        raise ValueError(f"refine must be 'normals' or 'global', got {refine!r}")
+    sign = _defocus_sign(refine, defocus)
     path = image.path or "<image>"
     px = image.pixel_size
     coat_hint = _coating_hint(coating, px, path)
@@ -494,7 +518,7 @@ def extract_profile(
     img = image.data[::-1] if flipped else image.data
     background = {}
     win, origin, flat, noise, cont, frame, saturated = _window_and_contour(img, coarse, hpx, path, px, background)
-    fit_args = (hpx, px, coat_hint, refine, fringe_correction, saturated)
+    fit_args = (hpx, px, coat_hint, refine, fringe_correction, saturated, sign)
     pts, frame, edge_model, extra, uncertainty = _fit_from_start(win, flat, noise, cont, frame, fit_args, background)
     _note_background(extra, background)
     if extra.get("refine") == "global":

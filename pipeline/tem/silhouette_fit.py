@@ -64,6 +64,17 @@ thickness on every image instead (by the Beer-Lambert chi^2) read the dark fring
 overfocus as more layer (grid 56: 2.2 nm outward) and cost ~4x; the coherent chi^2 keeps those
 one-material (README, issue 16).
 
+The sign of the defocus given (``defocus_sign``, the tip YAML's ``tem.defocus``): chi^2 does not
+identify the sign (``fringe_correction``, "Why chi^2 cannot tell the sign"), the microscope's
+operator knows it.  The correction is fitted at both signs as without it; where that takes the
+other sign than the one given, it is fitted again at the given sign (the flag says so).  The coated
+alternative runs where it runs without the sign (the fit of both signs took lambda x df < 0), and
+then compares the two bodies rendered at the given sign.  Run also where that fit took underfocus
+against an overfocus given, it put the edge of a 15.7 nm DLC layer (DLC set 39 of
+``bench_tem_independent``) 6.0 nm inside instead of 2.6 nm outside: not done.  Where the fit of both
+signs agrees with the one given, nothing more is done and the edge is the same (the coated
+alternative's rendering, where it runs, keeps to the given sign).
+
 Saturated detector (``censored``): where the beam is above the detector's full scale (8- or
 16-bit images of an over-exposed vacuum), the clipped pixels read the full scale instead of the
 image, and fitting them as data pulls the model's vacuum down to it and the edge inwards (by up to
@@ -161,6 +172,7 @@ def fit_silhouette(
     binning=None,
     fringe_correction=True,
     censored=None,
+    defocus_sign=0,
 ) -> GlobalFit:
     """Fit the silhouette model (module doc) to ``flat`` (window with the background
     flattened to 1, tip pointing down), starting from ``contour`` (iso-line outside the
@@ -169,16 +181,13 @@ def fit_silhouette(
     ``binning``: block size (default ``bin_factor(pixel_size)``); results are in the
     pixels of ``flat``; ``fringe_correction``: the defocus-fringe correction (module doc) on/off;
     ``censored`` (bool, ``flat``'s shape, or None): pixels a saturated detector clipped, whose true
-    value is at least the one read (module doc, "Saturated detector")."""
+    value is at least the one read (module doc, "Saturated detector"); ``defocus_sign``: the sign of the
+    defocus if the operator knows it (+1 underfocus, -1 overfocus; 0 not given; module doc, "The sign
+    of the defocus given")."""
     b = int(binning or bin_factor(pixel_size))
-    if b > 1:
-        gf = _fit_binned(
-            flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b, fringe_correction, censored
-        )
-    else:
-        gf = _fit_pixels(
-            flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, fringe_correction, censored
-        )
+    args = (flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter)
+    options = (fringe_correction, censored, defocus_sign)
+    gf = _fit_binned(*args, b, *options) if b > 1 else _fit_pixels(*args, *options)
     return _with_model_error(gf, pixel_size)
 
 
@@ -204,7 +213,7 @@ def _with_model_error(gf, pixel_size):
 
 
 def _fit_pixels(
-    flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, fringe_correction, censored
+    flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, fringe_correction, censored, sign=0
 ):
     """``fit_silhouette`` on the pixels of ``flat`` as they are (no binning, no model-error term)."""
     flat = np.asarray(flat, float)
@@ -242,19 +251,39 @@ def _fit_pixels(
     st, JTJ, names = fitter.polish(st, *lim)
     fringe = {}
     if fringe_correction and float(st.res @ st.res) / max(1, prob.n_data(st.B, st.lin)) > FRINGE_MIN_CHI2_RED:
-        fringe = fringe_offset(prob, fitter, st, pixel_size)
-        if coat_hint is None and _layer_may_be_read_as_fringe(fitter, st, fringe):
-            alt = _coated_alternative(prob, (f1, st1, k0, max_coat, max_iter), st, fringe, pixel_size)
-            if alt is not None:
-                fitter, st, JTJ, names, coat_test, fringe = alt
+        fit = (fitter, st, JTJ, names, coat_test)
+        fitter, st, JTJ, names, coat_test, fringe = _defocus_fringes(
+            prob, fit, (f1, st1, k0, max_coat, max_iter), pixel_size, coat_hint, sign
+        )
     prob.map_c = None
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
 
 
+def _defocus_fringes(prob, fit, single, pixel_size, coat_hint, sign):
+    """The fringe correction of the polished ``fit`` (fitter, state, J^T J, names, coating test) and the
+    coated alternative where a layer may have been read as a fringe (module doc); returned as (fitter,
+    state, J^T J, names, coating test, fringe).  With the defocus's sign given (``sign``), the correction
+    is fitted at both signs first, as without it, and again at the given sign only where it took the
+    other one (``free_A_px2`` keeps what it took then; module doc, "The sign of the defocus given")."""
+    fitter, st, JTJ, names, coat_test = fit
+    fringe = fringe_offset(prob, fitter, st, pixel_size)
+    free = fringe
+    if sign and fringe["A_px2"] * sign < 0:
+        fringe = dict(fringe_offset(prob, fitter, st, pixel_size, sign=sign), free_A_px2=free["A_px2"])
+    elif sign:
+        fringe["sign"] = int(sign)
+    if coat_hint is None and _layer_may_be_read_as_fringe(fitter, st, free):
+        alt = _coated_alternative(prob, single, st, fringe, pixel_size, sign)
+        if alt is not None:
+            return alt
+    return fitter, st, JTJ, names, coat_test, fringe
+
+
 def _layer_may_be_read_as_fringe(fitter, st, fringe):
-    """Whether the fringe correction of a one-material fit may have read a light layer as the dark
-    fringe of an overfocus (module doc, "A layer read as a fringe"): applied, at lambda x df < 0, on a
-    fit with no layer whose blur sits at its floor (so the coating search left no room for a layer)."""
+    """Whether the fringe correction (of both signs, ``fringe``) of a one-material fit may have read a
+    light layer as the dark fringe of an overfocus (module doc, "A layer read as a fringe"): applied, at
+    lambda x df < 0, on a fit with no layer whose blur sits at its floor (so the coating search left no
+    room for a layer)."""
     return bool(
         not fitter.coated
         and fringe.get("applied")
@@ -263,10 +292,11 @@ def _layer_may_be_read_as_fringe(fitter, st, fringe):
     )
 
 
-def _coated_alternative(prob, single, st, fringe, pixel_size):
+def _coated_alternative(prob, single, st, fringe, pixel_size, sign=0):
     """The coated model with every layer thickness tried, polished and rendered coherently
-    (``fringe_offset``); returned as (fitter, state, J^T J, names, coating test, fringe) where its
-    coherent chi^2 is below that of the one-material fit's rendering (``st``, ``fringe``), else None."""
+    (``fringe_offset``, at the defocus's sign if given); returned as (fitter, state, J^T J, names,
+    coating test, fringe) where its chi^2 is below that of the one-material fit's rendering (``st``,
+    ``fringe``: coherent where applied, else Beer-Lambert), else None."""
     f1, st1, k0, max_coat, max_iter = single
     f2 = _Fitter(prob, coated=True)
     lim2 = _bounds(prob.K, k0, max_coat, True)
@@ -275,8 +305,8 @@ def _coated_alternative(prob, single, st, fringe, pixel_size):
         return None
     prob.map_c = None
     st2, JTJ2, names2 = f2.polish(st2, *lim2)
-    fr2 = fringe_offset(prob, f2, st2, pixel_size)
-    cost1 = fringe["chi2"]  # the one-material fit's coherent rendering (applied)
+    fr2 = fringe_offset(prob, f2, st2, pixel_size, sign=sign)
+    cost1 = fringe["chi2"] if fringe["applied"] else fringe["chi2_beer_lambert"]  # the one-material fit's
     cost2 = fr2["chi2"] if fr2["applied"] else fr2["chi2_beer_lambert"]
     if cost2 >= cost1:
         return None
@@ -284,7 +314,9 @@ def _coated_alternative(prob, single, st, fringe, pixel_size):
     test["layer_not_fringe"] = True
     test["note"] = (
         f"a light layer, not a fringe: the one-material fit's fringe correction took lambda x defocus "
-        f"{fringe['A_px2'] * nm**2:+.1f} nm^2 (overfocus) and moved the edge {fringe['offset_px'] * nm:+.2f} nm; "
+        f"{fringe.get('free_A_px2', fringe['A_px2']) * nm**2:+.1f} nm^2 ("
+        f"{'against the sign given' if 'free_A_px2' in fringe else 'overfocus'}) and moved the edge "
+        f"{fringe['offset_px'] * nm:+.2f} nm; "
         f"the coated model ({test['thickness_px'] * nm:.2f} nm layer), rendered coherently too, fits the image "
         f"better (chi^2 {cost2:.0f} against {cost1:.0f})"
     )
@@ -292,7 +324,19 @@ def _coated_alternative(prob, single, st, fringe, pixel_size):
 
 
 def _fit_binned(
-    flat, contour, frame, hpx, noise, pixel_size, coat_hint, knot_nm, max_iter, b, fringe_correction=True, censored=None
+    flat,
+    contour,
+    frame,
+    hpx,
+    noise,
+    pixel_size,
+    coat_hint,
+    knot_nm,
+    max_iter,
+    b,
+    fringe_correction=True,
+    censored=None,
+    sign=0,
 ):
     """``fit_silhouette`` on b x b blocks, its result in the pixels of ``flat`` (a block with a
     clipped pixel is censored: its mean is a lower bound too)."""
@@ -309,6 +353,7 @@ def _fit_binned(
         max_iter,
         fringe_correction,
         None if censored is None else _bin(np.asarray(censored, float), b) > 0,
+        sign,
     )
     gf.points = gf.points * b + off
     gf.frame = TipFrame(gf.frame.apex * b + off, gf.frame.angle)
@@ -327,6 +372,8 @@ def _fit_binned(
     if "A_px2" in fr:
         fr["A_px2"] *= b**2
         fr["eta"] /= b
+    if "free_A_px2" in fr:
+        fr["free_A_px2"] *= b**2
     if "candidates_px" in ct:
         ct["candidates_px"] = [t * b for t in ct["candidates_px"]]
     return gf
@@ -407,6 +454,8 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
     if coat_test.get("layer_not_fringe"):
         flags.append(coat_test["note"])
     fringe = fringe or {}
+    if "free_A_px2" in fringe:
+        flags.append(_against_the_sign_words(fringe, pixel_size))
     if fringe.get("applied"):
         # the uniform offset of the coherent rendering moves every edge point; its standard error
         # and its model error (``fringe_correction.MOVE_SD_SHARE``) are a common offset of the whole edge
@@ -447,12 +496,32 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
 def _fringe_words(fr, pixel_size):
     """The flag of an applied defocus-fringe correction."""
     nm = 1e9 * (pixel_size or float("nan"))
+    if fr.get("sign"):
+        why = f"the sign of the defocus was given ({_FOCUS[fr['sign']]}); the rendering's own model error is taken as"
+    else:
+        why = (
+            "the sign of the defocus is not always identified (a light layer can read as a fringe), so the edge "
+            "carries a common uncertainty of"
+        )
     return (
         f"defocus fringes: edge moved {fr['offset_px'] * nm:+.2f} +- {fr['offset_sd_px'] * nm:.2f} nm (noise) by a "
         f"coherent rendering of the fitted body (lambda x defocus {fr['A_px2'] * nm**2:+.1f} nm^2, i.e. "
-        f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f}); the sign of the defocus is "
-        f"not always identified (a light layer can read as a fringe), so the edge carries a common uncertainty "
-        f"of half the move, {fr['model_sd_px'] * nm:.2f} nm"
+        f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f}); {why} "
+        f"half the move, {fr['model_sd_px'] * nm:.2f} nm"
+    )
+
+
+_FOCUS = {1: "underfocus", -1: "overfocus"}
+
+
+def _against_the_sign_words(fr, pixel_size):
+    """The flag of a fringe fit of both signs that took the other sign than the one given."""
+    nm2 = (1e9 * (pixel_size or float("nan"))) ** 2
+    return (
+        f"defocus given as {_FOCUS[fr['sign']]}: the fringe fit of both signs took lambda x defocus "
+        f"{fr['free_A_px2'] * nm2:+.1f} nm^2 ({_FOCUS[-fr['sign']]}; a light layer or the edge model's error can "
+        f"read as the fringe of the other sign), so the fringes were fitted at the given sign "
+        f"({fr['A_px2'] * nm2:+.1f} nm^2{'' if fr['applied'] else ', not applied: no better than no fringe'})"
     )
 
 

@@ -23,6 +23,7 @@ def run_profiles(
     coating="auto",
     refine="global",
     fringe_correction=True,
+    defocus="auto",
 ) -> None:
     """Read ``image_path``, extract the apex profile, write ``out_h5`` and ``out_png`` atomically.
 
@@ -31,7 +32,8 @@ def run_profiles(
     thickness in m (lighter outer layer; the OUTER surface is reported); refine:
     "global" (one fit of all edge pixels, pipeline.tem.silhouette_fit) or "normals"
     (per-normal fits only, pipeline.tem.edges); fringe_correction: the defocus-fringe correction
-    of the global fit's edge (pipeline.tem.fringe_correction).
+    of the global fit's edge (pipeline.tem.fringe_correction); defocus: "auto", "underfocus" or
+    "overfocus" (the sign of the defocus if the operator knows it).
     Raises ValueError subclasses (pipeline.tem.errors) naming the file.
     """
     image = read_tem_image(image_path, pixel_size)
@@ -42,6 +44,7 @@ def run_profiles(
         coating=coating,
         refine=refine,
         fringe_correction=fringe_correction,
+        defocus=defocus,
     )
     write_profile_h5(out_h5, image, profile, tip=tip, interval=interval)
     fl = profile.edge_model.get("faint_layer") or {}
