@@ -521,3 +521,24 @@ def test_a_light_layer_that_is_the_dark_fringe_is_taken_back(tmp_path):
     assert flag and "is read as this fringe" in flag[0], g["edge_flags"]
     assert abs(g["edge_bias"]) < 0.1e-9, g["edge_bias"]  # +0.44 nm at the layer's outer surface; -0.01 now
     assert g["n_covered"] and g["pulloff_covered_mc"] and abs(g["pulloff_error"]) < 0.03
+
+
+def test_the_interval_s_defocus_reaches_the_stage(tmp_path, monkeypatch):
+    """``python -m pipeline profiles``: an interval's own ``defocus`` overrides the tip's ``tem.defocus``,
+    and the tip's applies to the other intervals."""
+    import pipeline.tem.stage as stage
+    from pipeline.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+    src = (root / "config" / "tips" / "tipB_Si.yaml").read_text()
+    given = src.replace("tem:", "tem:\n  defocus: underfocus", 1)
+    cfg = tmp_path / "t.yaml"
+    cfg.write_text(given.replace("  scans: 0\n", "  scans: 0\n  defocus: overfocus\n", 1))
+    seen = {}
+    monkeypatch.setattr(stage, "run_profiles", lambda *a, **kw: seen.update({kw["interval"]: kw["defocus"]}))
+    for interval in ("scan000", "scan010"):
+        assert (
+            main(["profiles", "--tip-config", str(cfg), "--interval", interval, "--out-h5", "x", "--out-png", "y"]) == 0
+        )
+    assert seen == {"scan000": "overfocus", "scan010": "underfocus"}
