@@ -420,6 +420,47 @@ def test_the_sign_given_keeps_the_fringes_to_it(tmp_path):
     assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"], (g["edge_bias"], g["edge_bias_sd"])
 
 
+def test_the_sign_given_finds_a_strong_overfocus_at_fine_pixels(tmp_path):
+    """Held-out image 33 (``bench_tem_independent --seed0 1000``, its parameters exactly): uncoated,
+    1.59 um overfocus at 0.117 nm px.  The fit of both signs takes underfocus (+3.2 nm^2): there the
+    rendering fits better by ~2e4 in chi^2, and the edge stays 0.92 nm outside, outside its SD.  Given
+    the overfocus, the 1-D screen's optimum in the right basin (A ~ -290 px^2) ranks low in 2-D until
+    the fit has moved its blur and attenuation scale, so every distinct candidate goes on
+    (``SCREEN_KEEP_SIGNED``): the edge lies 0.11 nm from the true silhouette."""
+    from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
+
+    parts = (
+        ParticleSpec(
+            9.33228214077726e-09, 160.819143657244,
+            (1.699009594435103e-09, 1.2026332386478029e-09, 1.5009537440849512e-09), 0.3334250105622962,
+            118.43212996024376, "apex",
+        ),
+    )  # fmt: skip
+    p = TemWaveParams(
+        n=5.312552508523679, R=1.3590251291040496e-08, S=1.9206617489745534, z_join=2.1764910382180943e-08,
+        shank_half_angle_deg=18.32963090658611, blend_length=3.65751446605772e-08,
+        asymmetry=0.025875493464081502, layer="none", layer_thickness=0.0,
+        core_absorption_length_200kv=3.4969719214042904e-08, layer_contrast=0.2,
+        contamination_contrast=0.1750280579939341, particles=parts, pixel_size=1.1655125389411759e-10,
+        shape=(1024, 1024), apex_px=(292.5137796228962, 544.5902564594061), rotation_deg=-10.75653258166869,
+        orientation="up", kv=233.27869261852751, defocus=-1.586521128673421e-06, cs=0.0009190005722519705,
+        aperture=0.014780501921797876, illumination_angle=8.165591215316156e-05, cc=0.002277663125622836,
+        energy_spread_ev=0.5040598908906715, snr=20.984650505362715, bits=16,
+        background_level=0.2786349595562093, float_gain=7.155889186541616, offset=245.46174896260223,
+        read_noise=1.4410018288167508, psf_sigma=0.35878029030940367, psf_tail_weight=0.12108972808960143,
+        psf_tail_length=4.614723447749515, illumination_gradient=0.03271708218420806,
+        gradient_angle_deg=16.670756247762547, vignetting=0.06630611132704431, seed=1033,
+    )  # fmt: skip
+    g, flag = _graded(tmp_path, p, defocus="overfocus")
+    assert not g["lost"], g["lost_reason"]
+    against = [f for f in g["edge_flags"] if f.startswith("defocus given as overfocus")]
+    assert against and "took lambda x defocus +" in against[0], g["edge_flags"]
+    assert flag and "lambda x defocus -" in flag[0], flag
+    lam_df = float(flag[0].split("lambda x defocus ")[1].split(" ")[0]) * 1e-18
+    assert 0.6 < lam_df / (2.29e-12 * p.defocus) < 1.4, lam_df  # lambda 2.29 pm at 233 kV
+    assert abs(g["edge_bias"]) < 0.3e-9, g["edge_bias"]  # 0.11 nm; without the sign +0.92 nm
+
+
 def test_the_sign_given_that_the_fit_finds_changes_nothing(defocused):
     """Where the fit of both signs takes the sign given (the defocused image: 1.5 um overfocus), nothing
     more is done: the same edge to the last bit; only the flag's words say the sign was given."""
