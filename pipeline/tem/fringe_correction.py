@@ -75,6 +75,15 @@ The vacuum's fringes further out carry no sign.  So the sign is what the microsc
 and the image may not show: ``sign`` +1 (underfocus, A >= 0) or -1 (overfocus, A <= 0) keeps the
 fit to that sign (its starts, its 1-D screen and its LM steps, every distinct candidate of the screen
 going on: ``SCREEN_KEEP_SIGNED``); 0 (the default) fits both.
+
+A light layer that is the dark fringe, with an overfocus given.  In a slight overfocus the dark fringe
+just outside an uncoated edge is read by the silhouette fit as a light layer 0.65-2.2 nm thick, and
+the edge reported is its outer surface, 0.3-0.8 nm out, often under ``MIN_CHI2_RED`` (README, issue
+16, "a slight overfocus pushes the edge out").  Rendering the fitted outer curve as one body of the
+core's material (``one_material``) takes the layer back where that fits better; without the sign
+it took real oxides' layers off at the wrong sign, and cost 1.4-2.6x on every thin oxide (tried and
+not kept).  With an overfocus given, both bodies are rendered at that sign only (``silhouette_fit``,
+``LAYER_AS_FRINGE_MAX``).
 """
 
 from __future__ import annotations
@@ -86,7 +95,8 @@ from scipy.optimize import least_squares
 
 from pipeline.tem.silhouette_model import _Body
 
-MIN_CHI2_RED = 5.0  # the correction is tried only above this reduced chi^2 of the fit
+MIN_CHI2_RED = 5.0  # the correction is tried only above this reduced chi^2 of the fit ...
+LAYER_AS_FRINGE_MAX = 2.5e-9  # ... or, with an overfocus given, where the fit's light layer is thinner (m)
 MIN_DCHI2 = 25.0  # chi^2 decrease needed to apply it (4 extra parameters besides the offset)
 MAX_SHIFT_PER_FRINGE = 1.5  # largest accepted |offset| per fringe width sqrt(|A|) (px / px) ...
 SHIFT_SLACK_PX = 0.25  # ... plus this (px)
@@ -116,10 +126,12 @@ _NQ = _FD.size
 class _Coherent:
     """The coherent rendering of one fitted silhouette (module doc) on its problem's pixels."""
 
-    def __init__(self, prob, fitter, st, pixel_size, sign=0):
+    def __init__(self, prob, fitter, st, pixel_size, sign=0, one_material=False):
         self.p = prob
         self.sign = int(np.sign(sign))  # the defocus's sign given: A kept >= 0 (+1) or <= 0 (-1); 0 both
         self.c, self.sigma, self.k_o, self.k_c, self.coat = fitter.unpack(st.v)
+        if one_material:  # the fitted outer curve as one body of the core's material (module doc)
+            self.coat, self.k_o = 0.0, self.k_c
         H, W = prob.shape
         r0, c0 = prob.origin
         RR, CC = np.mgrid[r0 : r0 + H, c0 : c0 + W].astype(float)
@@ -275,14 +287,16 @@ def _offset_sd(JTJ, scale):
     return float(np.sqrt(var)) if np.isfinite(var) and var >= 0 else float("nan")
 
 
-def fringe_offset(prob, fitter, st, pixel_size, iters=10, sign=0):
+def fringe_offset(prob, fitter, st, pixel_size, iters=10, sign=0, one_material=False):
     """Fit of the coherent rendering of the fitted silhouette ``st`` (module doc), at either sign of
-    the defocus (``sign`` 0) or at the sign given (+1 underfocus, -1 overfocus).  Returns a dict:
+    the defocus (``sign`` 0) or at the sign given (+1 underfocus, -1 overfocus); with ``one_material``
+    the fitted outer curve is rendered as one body of the core's material ("A light layer that is the
+    dark fringe").  Returns a dict:
     offset_px (uniform outward offset of the edge), offset_sd_px (its noise), model_sd_px (its model
     error, ``MOVE_SD_SHARE`` x |offset|), A_px2 (lambda df / px^2), eta
     (rad/px), sigma_px (blur), attenuation_scale (g), dchi2 (chi^2 decrease against the Beer-Lambert
     model), chi2 and chi2_beer_lambert (the two), sign (the sign given, 0 if none), applied."""
-    co = _Coherent(prob, fitter, st, pixel_size, sign)
+    co = _Coherent(prob, fitter, st, pixel_size, sign, one_material)
     r0 = co.residual(np.zeros(_NQ))
     chi0 = float(r0 @ r0)
     a_max = LAMBDA_DF_MAX / float(pixel_size or 0.25e-9) ** 2

@@ -74,6 +74,13 @@ against an overfocus given, it put the edge of a 15.7 nm DLC layer (DLC set 39 o
 ``bench_tem_independent``) 6.0 nm inside instead of 2.6 nm outside: not done.  Where the fit of both
 signs agrees with the one given, nothing more is done and the edge is the same (the coated
 alternative's rendering, where it runs, keeps to the given sign).
+With an overfocus given, a coated fit whose light layer is thinner than
+``fringe_correction.LAYER_AS_FRINGE_MAX`` may have read the dark fringe just outside an uncoated edge
+as that layer (grid 60: a 0.93 nm layer, the edge 0.44 nm out, its chi^2 under the correction's gate):
+the fitted outer curve rendered as one material at that sign is compared with the coated body's
+rendering, whatever the chi^2, and taken where it fits better by more than ``MIN_DCHI2``
+(``_layer_as_fringe``; flag "a fringe, not a light layer").  Without the sign this took real oxides'
+layers off at the wrong sign and cost 1.4-2.6x on every thin oxide (README, issue 16).
 
 Saturated detector (``censored``): where the beam is above the detector's full scale (8- or
 16-bit images of an over-exposed vacuum), the clipped pixels read the full scale instead of the
@@ -112,8 +119,9 @@ import numpy as np
 
 from pipeline.tem.coating_search import BLUR_FLOOR_PX, COAT_DCHI2, _coating_search
 from pipeline.tem.edges import TipFrame
+from pipeline.tem.fringe_correction import LAYER_AS_FRINGE_MAX, fringe_offset
 from pipeline.tem.fringe_correction import MIN_CHI2_RED as FRINGE_MIN_CHI2_RED
-from pipeline.tem.fringe_correction import fringe_offset
+from pipeline.tem.fringe_correction import MIN_DCHI2 as FRINGE_MIN_DCHI2
 from pipeline.tem.model_error import LAYER_SD, common_offset_sd_px
 from pipeline.tem.silhouette_model import (
     KNOT_NM,
@@ -255,6 +263,8 @@ def _fit_pixels(
         fitter, st, JTJ, names, coat_test, fringe = _defocus_fringes(
             prob, fit, (f1, st1, k0, max_coat, max_iter), pixel_size, coat_hint, sign
         )
+    if fringe_correction and coat_hint is None and sign < 0 and _thin_layer(fitter, st, pixel_size):
+        coat_test, fringe = _layer_as_fringe(prob, fitter, st, coat_test, fringe, pixel_size)
     prob.map_c = None
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
 
@@ -277,6 +287,28 @@ def _defocus_fringes(prob, fit, single, pixel_size, coat_hint, sign):
         if alt is not None:
             return alt
     return fitter, st, JTJ, names, coat_test, fringe
+
+
+def _thin_layer(fitter, st, pixel_size):
+    """Whether ``fitter`` is the coated model with a layer thinner than ``LAYER_AS_FRINGE_MAX``."""
+    return bool(fitter.coated and fitter.unpack(st.v)[4] * (pixel_size or 0.25e-9) < LAYER_AS_FRINGE_MAX)
+
+
+def _layer_as_fringe(prob, fitter, st, coat_test, fringe, pixel_size):
+    """With an overfocus given, the thin light layer of a coated fit may be the dark fringe just
+    outside an uncoated edge (module doc, "A light layer that is the dark fringe"): the fitted outer
+    curve rendered as one material at that sign is taken where its chi^2 is below the coated body's
+    rendering (``fringe``, or rendered now at that sign where the fit's chi^2 left it out) by more
+    than ``MIN_DCHI2``.  Returns (coating test, fringe): as they were, or with ``layer_as_fringe``."""
+    coated = fringe or fringe_offset(prob, fitter, st, pixel_size, sign=-1)
+    cost = coated["chi2"] if coated["applied"] else coated["chi2_beer_lambert"]
+    one = fringe_offset(prob, fitter, st, pixel_size, sign=-1, one_material=True)
+    if not (one["applied"] and one["chi2"] < cost - FRINGE_MIN_DCHI2):
+        return coat_test, fringe
+    one.update(layer_as_fringe_dchi2=cost - one["chi2"], layer_px=float(fitter.unpack(st.v)[4]))
+    if "free_A_px2" in fringe:
+        one["free_A_px2"] = fringe["free_A_px2"]
+    return dict(coat_test, layer_as_fringe=True), one
 
 
 def _layer_may_be_read_as_fringe(fitter, st, fringe):
@@ -366,7 +398,7 @@ def _fit_binned(
         if key in ct:
             ct[key] *= b
     fr = gf.fringe
-    for key in ("offset_px", "offset_sd_px", "model_sd_px", "sigma_px"):
+    for key in ("offset_px", "offset_sd_px", "model_sd_px", "sigma_px", "layer_px"):
         if key in fr:
             fr[key] *= b
     if "A_px2" in fr:
@@ -456,6 +488,8 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
     fringe = fringe or {}
     if "free_A_px2" in fringe:
         flags.append(_against_the_sign_words(fringe, pixel_size))
+    if "layer_as_fringe_dchi2" in fringe:
+        flags.append(_layer_as_fringe_words(fringe, pixel_size))
     if fringe.get("applied"):
         # the uniform offset of the coherent rendering moves every edge point; its standard error
         # and its model error (``fringe_correction.MOVE_SD_SHARE``) are a common offset of the whole edge
@@ -512,6 +546,16 @@ def _fringe_words(fr, pixel_size):
 
 
 _FOCUS = {1: "underfocus", -1: "overfocus"}
+
+
+def _layer_as_fringe_words(fr, pixel_size):
+    """The flag of a thin light layer read as the dark fringe of the overfocus given."""
+    nm = 1e9 * (pixel_size or float("nan"))
+    return (
+        f"a fringe, not a light layer: the light layer the fit found ({fr['layer_px'] * nm:.2f} nm) is read as the "
+        f"dark fringe of the overfocus given; the outer curve rendered as one material at that sign fits better "
+        f"(chi^2 -{fr['layer_as_fringe_dchi2']:.0f} against the coated body rendered), so the edge is that body's"
+    )
 
 
 def _against_the_sign_words(fr, pixel_size):
