@@ -155,6 +155,29 @@ def test_editing_one_tip_reruns_only_its_affected_stages(finished_run):
     assert planned_commands(finished_run) == []
 
 
+def test_the_defocus_sign_reruns_the_profiles_it_concerns(finished_run):
+    """``tem.defocus`` (a stage-1 setting) reruns every profile of its tip and what follows; an
+    interval's own ``defocus`` only that interval's profile (and its fit, and the tip's inversion on)."""
+    path = finished_run / "tips" / "tipA_DLC.yaml"
+    original = path.read_text()
+    try:
+        cfg = yaml.safe_load(original)
+        cfg["intervals"][1]["defocus"] = "underfocus"
+        path.write_text(yaml.safe_dump(cfg))
+        planned = planned_commands(finished_run)
+        profiles = [line for line in planned if " profiles " in line]
+        assert len(profiles) == 1 and f"--interval {cfg['intervals'][1]['name']} " in profiles[0], planned
+        assert not [line for line in planned if "tipB_Si" in line and " summary " not in line]
+        cfg["tem"]["defocus"] = "overfocus"
+        path.write_text(yaml.safe_dump(cfg))
+        planned = planned_commands(finished_run)
+        assert sum(" profiles " in line for line in planned) == 3  # tip A's three intervals
+        assert not [line for line in planned if "tipB_Si" in line and " summary " not in line]
+    finally:
+        path.write_text(original)
+    assert planned_commands(finished_run) == []
+
+
 def test_a_code_change_reruns_its_stage_and_what_follows_only(finished_run, tmp_path):
     """An upgraded pipeline whose fit code changed reruns the fits and what follows them, not the
     profiles or the forces (the rules' `code` param, pipeline.code_version); a comment reruns nothing.
