@@ -461,11 +461,23 @@ def test_the_sign_given_finds_a_strong_overfocus_at_fine_pixels(tmp_path):
     assert abs(g["edge_bias"]) < 0.3e-9, g["edge_bias"]  # 0.11 nm; without the sign +0.92 nm
 
 
-def test_the_sign_given_that_the_fit_finds_changes_nothing(defocused):
+def test_the_sign_given_that_the_fit_finds_changes_nothing(defocused, tmp_path):
     """Where the fit of both signs takes the sign given (the defocused image: 1.5 um overfocus), nothing
-    more is done: the same edge to the last bit; only the flag's words say the sign was given."""
+    more is done: the same edge to the last bit; only the flag's words say the sign was given, and the
+    profile file (``/edge_model`` attributes)."""
+    import h5py
+
+    from pipeline.synth.tem_wave import simulate
+    from pipeline.tem.io import write_profile_h5
+    from pipeline.tem.reading import TemImage
+
     prof = defocused[0]
-    given = _profile(-1.5e-6, defocus_given="overfocus")[0]
+    given, _, _, p = _profile(-1.5e-6, defocus_given="overfocus")
+    write_profile_h5(tmp_path / "p.h5", TemImage(simulate(p)[0].astype(float), p.pixel_size, "synthetic"), given)
+    with h5py.File(tmp_path / "p.h5") as f:
+        assert f["edge_model"].attrs["fringe_defocus_sign_given"] == -1
+        assert not f["edge_model"].attrs["fringe_layer_taken_back"]
+        assert "fringe_free_lambda_defocus" not in f["edge_model"]  # the fit of both signs agreed
     assert np.array_equal(given.edge_px, prof.edge_px)
     assert np.array_equal(given.offset_cov, prof.offset_cov)
     assert given.edge_model["global_fringe"]["sign"] == -1 and prof.edge_model["global_fringe"]["sign"] == 0

@@ -153,6 +153,8 @@ def _write_fringe(g, fr, px):
     w(g, "fringe_attenuation_scale", fr["attenuation_scale"], "1", "common scale of the attenuations fitted with it")
     w(g, "fringe_dchi2", fr["dchi2"], "1", "chi^2(Beer-Lambert) - chi^2(coherent rendering)")
     g.attrs["fringe_defocus_sign_given"] = int(fr.get("sign", 0))  # +1 underfocus, -1 overfocus, 0 not given
+    # with an overfocus given: the fitted thin light layer read as the dark fringe, the edge one material's
+    g.attrs["fringe_layer_taken_back"] = bool("layer_as_fringe_dchi2" in fr)
     if "free_A_px2" in fr:
         w(
             g,
