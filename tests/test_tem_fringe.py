@@ -410,7 +410,8 @@ def test_the_sign_given_keeps_the_fringes_to_it(tmp_path):
     """Grid image 100 again, with the operator's ``tem.defocus: underfocus``: the fit of both signs still
     takes overfocus (-1.5 nm^2, the oxide read as the dark fringe), the flag says so, and the fringes
     fitted at the given sign (+0.9 nm^2 against the true +1.3 nm^2) move the edge only 0.12 nm: it lies
-    +0.07 nm from the true silhouette (-0.57 nm without the sign), within its SD."""
+    +0.07 nm from the true silhouette (-0.57 nm without the sign), within its SD, which carries the two
+    fits' disagreement."""
     g, flag = _graded(tmp_path, _grid_100(), defocus="underfocus")
     assert not g["lost"], g["lost_reason"]
     against = [f for f in g["edge_flags"] if f.startswith("defocus given as underfocus")]
@@ -418,6 +419,10 @@ def test_the_sign_given_keeps_the_fringes_to_it(tmp_path):
     assert flag and "lambda x defocus +" in flag[0] and "the sign of the defocus was given (underfocus)" in flag[0]
     assert abs(g["edge_bias"]) < 0.2e-9, g["edge_bias"]
     assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"], (g["edge_bias"], g["edge_bias_sd"])
+    # the two fits disagree: half their edges' distance (0.32 nm) joins the edge's SD (0.25 -> 0.41 nm), which
+    # also covers the other fit's edge, in case the sign given was the wrong one
+    assert "half the distance between the two fits' edges, 0.3" in against[0], against[0]
+    assert g["edge_bias_sd"] > 0.35e-9, g["edge_bias_sd"]
 
 
 def test_the_sign_given_finds_a_strong_overfocus_at_fine_pixels(tmp_path):

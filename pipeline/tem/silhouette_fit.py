@@ -279,7 +279,11 @@ def _defocus_fringes(prob, fit, single, pixel_size, coat_hint, sign):
     fringe = fringe_offset(prob, fitter, st, pixel_size)
     free = fringe
     if sign and fringe["A_px2"] * sign < 0:
-        fringe = dict(fringe_offset(prob, fitter, st, pixel_size, sign=sign), free_A_px2=free["A_px2"])
+        signed = fringe_offset(prob, fitter, st, pixel_size, sign=sign)
+        # the sign given and the fit of both signs disagree: either may be wrong (a wrong sign given moved
+        # the grid's median edge 0.30 -> 0.54 nm), so the edge carries half the two edges' distance
+        moved = (signed["offset_px"] if signed["applied"] else 0.0) - (free["offset_px"] if free["applied"] else 0.0)
+        fringe = dict(signed, free_A_px2=free["A_px2"], conflict_sd_px=0.5 * abs(moved))
     elif sign:
         fringe["sign"] = int(sign)
     if coat_hint is None and _layer_may_be_read_as_fringe(fitter, st, free):
@@ -307,7 +311,7 @@ def _layer_as_fringe(prob, fitter, st, coat_test, fringe, pixel_size):
         return coat_test, fringe
     one.update(layer_as_fringe_dchi2=cost - one["chi2"], layer_px=float(fitter.unpack(st.v)[4]))
     if "free_A_px2" in fringe:
-        one["free_A_px2"] = fringe["free_A_px2"]
+        one.update(free_A_px2=fringe["free_A_px2"], conflict_sd_px=fringe["conflict_sd_px"])
     return dict(coat_test, layer_as_fringe=True), one
 
 
@@ -398,7 +402,7 @@ def _fit_binned(
         if key in ct:
             ct[key] *= b
     fr = gf.fringe
-    for key in ("offset_px", "offset_sd_px", "model_sd_px", "sigma_px", "layer_px"):
+    for key in ("offset_px", "offset_sd_px", "model_sd_px", "sigma_px", "layer_px", "conflict_sd_px"):
         if key in fr:
             fr[key] *= b
     if "A_px2" in fr:
@@ -488,6 +492,7 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
     fringe = fringe or {}
     if "free_A_px2" in fringe:
         flags.append(_against_the_sign_words(fringe, pixel_size))
+        cov_c = cov_c + fringe["conflict_sd_px"] ** 2 * np.ones((K, K))
     if "layer_as_fringe_dchi2" in fringe:
         flags.append(_layer_as_fringe_words(fringe, pixel_size))
     if fringe.get("applied"):
@@ -565,7 +570,10 @@ def _against_the_sign_words(fr, pixel_size):
         f"defocus given as {_FOCUS[fr['sign']]}: the fringe fit of both signs took lambda x defocus "
         f"{fr['free_A_px2'] * nm2:+.1f} nm^2 ({_FOCUS[-fr['sign']]}; a light layer or the edge model's error can "
         f"read as the fringe of the other sign), so the fringes were fitted at the given sign "
-        f"({fr['A_px2'] * nm2:+.1f} nm^2{'' if fr['applied'] else ', not applied: no better than no fringe'})"
+        f"({fr['A_px2'] * nm2:+.1f} nm^2{'' if fr['applied'] else ', not applied: no better than no fringe'}); "
+        f"as the given sign may be the wrong one, the edge carries half the distance between the two fits' "
+        f"edges, {fr['conflict_sd_px'] * nm2**0.5:.2f} nm, as a common uncertainty (check the sign if most "
+        f"intervals say this)"
     )
 
 
