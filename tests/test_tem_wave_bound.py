@@ -1,0 +1,66 @@
+"""The Cramér-Rao yardstick of the wave-optical grid (``pipeline.synth.tem_wave_bound``)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.synth.tem_fisher import crb_summary, default_apex, fisher_information
+from pipeline.synth.tem_truth import TIP_SHAPES
+from pipeline.synth.tem_wave import TemWaveParams, simulate
+from pipeline.synth.tem_wave_bound import twin_bound, vacuum_dose
+
+CRB_GRID = __import__("pathlib").Path(__file__).parent / "data" / "crb_grid.csv"
+
+
+@pytest.mark.parametrize("bits", [8, 16, 0])
+def test_the_dose_is_the_one_the_simulator_draws_its_counts_at(bits):
+    p = TemWaveParams(n=3.0, R=12e-9, pixel_size=0.5e-9, shape=(128, 128), apex_px=(90.3, 63.6), bits=bits, snr=12.0)
+    _, truth = simulate(p)
+    assert vacuum_dose(p) == pytest.approx(truth["dose"], rel=1e-12)
+
+
+def _grid_twin(n, px, side):
+    """The wave parameters whose twin is the stored CRB grid's case (blur 0.5 px, no coating, rotation 0,
+    the core's absorption length 40 nm at 200 kV, gradient 0.04: ``bench_profiles_crb.case_fisher``)."""
+    shape = (side, side)
+    return TemWaveParams(
+        n=n,
+        R=TIP_SHAPES[int(n)],
+        S=1.0,
+        pixel_size=px,
+        shape=shape,
+        apex_px=default_apex(shape, "down", 0),
+        rotation_deg=0.0,
+        kv=200.0,
+        core_absorption_length_200kv=40e-9,
+        psf_sigma=0.5,
+        illumination_gradient=0.04,
+    )
+
+
+@pytest.mark.parametrize("n", [2.0, 6.0])
+def test_the_twin_at_the_grid_s_dose_is_the_crb_grid_s_case(n):
+    """The twin's bound at the dose of edge SNR 10 is that of the CRB grid's case spelled out
+    (``bench_profiles_crb.case_fisher``'s arguments): the wave parameters map onto the right
+    image, and the dose onto its SNR.  The stored grid (tests/data) drew each row's apex with
+    another seed: its sub-pixel position moves the bound by 2-4 %."""
+    p = _grid_twin(n, 0.5e-9, 384)
+    ref = fisher_information(n, TIP_SHAPES[int(n)] ** (n - 1), 0.5e-9, (384, 384), blur_sigma_px=0.5, edge_snr=10.0)
+    want = crb_summary(ref)
+    b = twin_bound(p, dose=ref.n_bg)
+    assert b["twin_edge_snr"] == pytest.approx(10.0, rel=1e-12)
+    assert b["crb_n"] == pytest.approx(want["crb_n"], rel=1e-9)
+    assert b["crb_pulloff"] == pytest.approx(np.max(want["crb_dugdale"]), rel=1e-9)
+    t = pd.read_csv(CRB_GRID)
+    row = t[
+        (t.n == n) & np.isclose(t.pixel_size_nm, 0.5) & (t.blur_px == 0.5) & (t.coating_nm == 0) & (t.edge_snr == 10)
+    ]
+    assert b["crb_n"] == pytest.approx(row.crb_n.iloc[0], rel=0.05)
+
+
+def test_the_bound_falls_as_one_over_the_root_of_the_dose():
+    p = _grid_twin(2.0, 0.5e-9, 384)
+    b1, b4 = twin_bound(p, dose=1000.0), twin_bound(p, dose=4000.0)
+    assert b4["crb_n"] == pytest.approx(b1["crb_n"] / 2, rel=1e-9)
+    assert b4["p_dn"] > b1["p_dn"]
+    assert b1["allowed_dn"] == (b1["p_dn"] >= 0.95)
