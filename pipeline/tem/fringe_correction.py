@@ -255,12 +255,12 @@ class _Coherent:
                 break
         return q, cost, JTJ
 
-    def jacobian(self, q, r=None):
+    def jacobian(self, q, r=None, cols=range(_NQ)):
         """Forward-difference Jacobian of ``residual`` at q (steps ``_FD``; the step in A towards the
-        sign given, so that it stays on that side of 0)."""
+        sign given, so that it stays on that side of 0); ``cols``: those columns only."""
         r = self.residual(q) if r is None else r
         fd = _FD if self.sign >= 0 else _FD * np.array([1.0, -1.0, 1.0, 1.0, 1.0])
-        return np.column_stack([(self.residual(q + e * h) - r) / h for e, h in zip(np.eye(_NQ), fd)])
+        return np.column_stack([(self.residual(q + np.eye(_NQ)[i] * fd[i]) - r) / fd[i] for i in cols])
 
 
 def _keep(cache, key, value, size=3):

@@ -152,6 +152,25 @@ def _write_fringe(g, fr, px):
     w(g, "fringe_lambda_defocus", fr["A_px2"] * px**2, "m^2", "wavelength x defocus fitted (> 0 underfocus)")
     w(g, "fringe_attenuation_scale", fr["attenuation_scale"], "1", "common scale of the attenuations fitted with it")
     w(g, "fringe_dchi2", fr["dchi2"], "1", "chi^2(Beer-Lambert) - chi^2(coherent rendering)")
+    if "shape_move_px" in fr:  # the edge's shape refitted with the coherent rendering (``fringe_shape``)
+        w(
+            g,
+            "fringe_shape_move",
+            np.asarray(fr["shape_move_px"], float) * px,
+            "m",
+            "outward move of each edge knot against the Beer-Lambert fit (uniform offset and shape; half of it is "
+            "a mode of the edge covariance)",
+        )
+        w(
+            g,
+            "fringe_shape_dchi2",
+            fr["shape_dchi2"],
+            "1",
+            "chi^2 at the uniform offset - chi^2 with the shape refitted",
+        )
+        w(g, "fringe_shape_lambda_defocus", fr["shape_A_px2"] * px**2, "m^2", "wavelength x defocus refitted with it")
+        g.attrs["fringe_shape_iterations"] = int(fr["shape_iterations"])
+        g.attrs["fringe_shape_converged"] = bool(fr["shape_converged"])
     g.attrs["fringe_defocus_sign_given"] = int(fr.get("sign", 0))  # +1 underfocus, -1 overfocus, 0 not given
     # with an overfocus given: the fitted thin light layer read as the dark fringe, the edge one material's
     g.attrs["fringe_layer_taken_back"] = bool("layer_as_fringe_dchi2" in fr)

@@ -119,9 +119,10 @@ import numpy as np
 
 from pipeline.tem.coating_search import BLUR_FLOOR_PX, COAT_DCHI2, _coating_search
 from pipeline.tem.edges import TipFrame
-from pipeline.tem.fringe_correction import LAYER_AS_FRINGE_MAX, fringe_offset
+from pipeline.tem.fringe_correction import LAYER_AS_FRINGE_MAX, MOVE_SD_SHARE, fringe_offset
 from pipeline.tem.fringe_correction import MIN_CHI2_RED as FRINGE_MIN_CHI2_RED
 from pipeline.tem.fringe_correction import MIN_DCHI2 as FRINGE_MIN_DCHI2
+from pipeline.tem.fringe_shape import fringe_shape
 from pipeline.tem.model_error import LAYER_SD, common_offset_sd_px
 from pipeline.tem.silhouette_model import (
     KNOT_NM,
@@ -402,12 +403,14 @@ def _fit_binned(
         if key in ct:
             ct[key] *= b
     fr = gf.fringe
-    for key in ("offset_px", "offset_sd_px", "model_sd_px", "sigma_px", "layer_px", "conflict_sd_px"):
+    for key in ("offset_px", "offset_sd_px", "model_sd_px", "sigma_px", "layer_px", "conflict_sd_px", "shape_move_px"):
         if key in fr:
-            fr[key] *= b
+            fr[key] = fr[key] * b
     if "A_px2" in fr:
         fr["A_px2"] *= b**2
         fr["eta"] /= b
+    if "shape_A_px2" in fr:
+        fr["shape_A_px2"] *= b**2
     if "free_A_px2" in fr:
         fr["free_A_px2"] *= b**2
     if "candidates_px" in ct:
@@ -495,20 +498,23 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
         cov_c = cov_c + fringe["conflict_sd_px"] ** 2 * np.ones((K, K))
     if "layer_as_fringe_dchi2" in fringe:
         flags.append(_layer_as_fringe_words(fringe, pixel_size))
-    if fringe.get("applied"):
-        # the uniform offset of the coherent rendering moves every edge point; its standard error
-        # and its model error (``fringe_correction.MOVE_SD_SHARE``) are a common offset of the whole edge
-        cov_c = cov_c + (fringe["offset_sd_px"] ** 2 + fringe["model_sd_px"] ** 2) * np.ones((K, K))
-        flags.append(_fringe_words(fringe, pixel_size))
     hit = np.nonzero(np.abs(c) >= 5.99)[0]
     if hit.size:
         flags.append(f"edge offset hit its bound (+-6 px) at {hit.size} of {K} knots")
-    if fringe.get("applied"):
-        c = c + fringe["offset_px"]
     if prob.cens is not None:
         words, sd_px = _saturation(prob, st, pixel_size)
         flags.append(words)
         cov_c = cov_c + sd_px**2 * np.ones((K, K))
+    if fringe.get("applied"):
+        # the coherent rendering moves the edge (a uniform offset, then its shape refitted): the offset's
+        # standard error is a common offset of the whole edge, and the model error of the move
+        # (``fringe_correction.MOVE_SD_SHARE`` of it) a mode along the move's own shape (``fringe_shape``)
+        shape = fringe_shape(prob, fitter, st, fringe, pixel_size, hpx)
+        fringe.update(_shape_record(shape))
+        mode = MOVE_SD_SHARE * shape["move_px"]
+        cov_c = cov_c + fringe["offset_sd_px"] ** 2 * np.ones((K, K)) + np.outer(mode, mode)
+        flags.append(_fringe_words(fringe, pixel_size))
+        c = shape["c"]
     pts, nrm, basis = _outer_silhouette(prob, c, hpx)
     rms = float(np.sqrt(np.sum((st.res / prob.w) ** 2) / max(1, prob.n_data(st.B, st.lin))))
     return GlobalFit(
@@ -533,20 +539,40 @@ def _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size=None,
 
 
 def _fringe_words(fr, pixel_size):
-    """The flag of an applied defocus-fringe correction."""
+    """The flag of an applied defocus-fringe correction (its uniform offset, then its shape refitted)."""
     nm = 1e9 * (pixel_size or float("nan"))
     if fr.get("sign"):
         why = f"the sign of the defocus was given ({_FOCUS[fr['sign']]}); the rendering's own model error is taken as"
     else:
         why = (
             "the sign of the defocus is not always identified (a light layer can read as a fringe), so the edge "
-            "carries a common uncertainty of"
+            "carries an uncertainty of"
+        )
+    shape = ""
+    if "shape_move_px" in fr:
+        beyond = np.asarray(fr["shape_move_px"]) - fr["offset_px"]
+        shape = (
+            f"; then the edge's shape refitted with that rendering (chi^2 -{fr['shape_dchi2']:.0f} more; beyond the "
+            f"uniform offset the edge moved by up to {np.max(np.abs(beyond)) * nm:.2f} nm"
+            + ("" if fr["shape_converged"] else f", not converged in {fr['shape_iterations']} steps")
+            + ")"
         )
     return (
         f"defocus fringes: edge moved {fr['offset_px'] * nm:+.2f} +- {fr['offset_sd_px'] * nm:.2f} nm (noise) by a "
         f"coherent rendering of the fitted body (lambda x defocus {fr['A_px2'] * nm**2:+.1f} nm^2, i.e. "
-        f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f}); {why} "
-        f"half the move, {fr['model_sd_px'] * nm:.2f} nm"
+        f"{fr['A_px2'] * nm**2 / 2.51:+.2f} um at 200 kV; chi^2 -{fr['dchi2']:.0f}){shape}; {why} "
+        f"half the move, up to {MOVE_SD_SHARE * np.max(np.abs(fr.get('shape_move_px', fr['offset_px']))) * nm:.2f} nm"
+    )
+
+
+def _shape_record(shape):
+    """What ``fringe_shape`` adds to the fringe record (``fringe`` of the fit)."""
+    return dict(
+        shape_move_px=shape["move_px"],
+        shape_dchi2=shape["chi2_uniform"] - shape["chi2"],
+        shape_A_px2=shape["A_px2"],
+        shape_iterations=shape["iterations"],
+        shape_converged=shape["converged"],
     )
 
 
