@@ -23,6 +23,8 @@ Metrics (SI units):
   (``pipeline.tem.start_contour``: the first level's fold share, the level the fit started from, and
   where the first level folded, its median distance beyond the final edge, m); bright_band: the
   width of the band beyond the edge's blur brighter than the vacuum (``pipeline.tem.faint_layer``, m);
+  fringe_shape_steps: the steps of the edge's shape refit to the fringes (``pipeline.tem.fringe_shape``;
+  NaN where the fringe correction was not applied);
 - lost: the interval cannot be used -- the stage raised (reason: its message), or the
   stage-2 fit carries a flag that makes the inversion drop it
   (``pipeline.inversion.UNUSABLE_FIT_FLAGS``), or the n policy rejects it (``clip_n``).
@@ -243,6 +245,7 @@ def grade(profile, fit, truth, fit_height=6e-9, heights=HEIGHTS):
         start_level=float((em.get("start_contour") or {}).get("start_level", float("nan"))),
         dim_zone=float((em.get("start_contour") or {}).get("dim_zone", float("nan"))),
         bright_band=float((em.get("faint_layer") or {}).get("bright_band", float("nan"))),
+        fringe_shape_steps=float((em.get("global_fringe") or {}).get("shape_iterations", float("nan"))),
         lost=bool(lost_reason(fit)),
         lost_reason=lost_reason(fit),
     )
