@@ -37,7 +37,7 @@ from pipeline.tem.fringe_correction import PHASE_PER_M, PHASE_RANGE, _Coherent
 from pipeline.tem.silhouette_model import _bspline
 
 SHAPE_ITERS = 40  # Levenberg-Marquardt steps at most
-SHAPE_TRIES = 3  # damped steps tried from one point (lam 0.1, 1, 10 after a failure) before it is the optimum
+SHAPE_TRIES = 3  # damped steps tried from one point (the current lam, then 10 x max(lam, 0.01) twice) before it stops
 SHAPE_STEP_PX = 0.5  # largest change of one knot's offset per step (px)
 SHAPE_TOL_PX = 0.005  # converged when no knot moved more than this (px) in an accepted step ...
 SHAPE_TOL_COST = 1e-5  # ... or chi^2 fell by less than this share
@@ -101,7 +101,7 @@ class _ShapeFit:
             # the move's coefficients the image hardly sees (the curve's ends, beyond the fit's pixels) are
             # held: nothing but the penalty would stop them (chosen once, at the start)
             d = np.einsum("ij,ij->j", PG, PG)
-            self.active = d > SHAPE_MIN_WEIGHT * np.median(d[d > 0])
+            self.active = d > SHAPE_MIN_WEIGHT * (np.median(d[d > 0]) if np.any(d > 0) else np.inf)
             self.D = self.D[:, self.active]
             PG = PG[:, self.active]
         Jq = J[:, 1:]

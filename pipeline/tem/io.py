@@ -147,7 +147,8 @@ def _write_fringe(g, fr, px):
         "fringe_model_sd",
         fr.get("model_sd_px", 0.0) * px,
         "m",
-        "its model error, half the offset (added to the edge covariance where applied)",
+        "its model error, half the offset (where the shape is refitted, half of fringe_shape_move is in the edge "
+        "covariance instead, as a mode along the move)",
     )
     w(g, "fringe_lambda_defocus", fr["A_px2"] * px**2, "m^2", "wavelength x defocus fitted (> 0 underfocus)")
     w(g, "fringe_attenuation_scale", fr["attenuation_scale"], "1", "common scale of the attenuations fitted with it")

@@ -549,7 +549,9 @@ def _fringe_words(fr, pixel_size):
             "carries an uncertainty of"
         )
     shape = ""
-    if "shape_move_px" in fr:
+    if fr.get("shape_dchi2", 0.0) <= 0.0 and "shape_move_px" in fr:
+        shape = "; its shape refitted with that rendering: no step lowered chi^2, the uniform offset is kept"
+    elif "shape_move_px" in fr:
         beyond = np.asarray(fr["shape_move_px"]) - fr["offset_px"]
         shape = (
             f"; then the edge's shape refitted with that rendering (chi^2 -{fr['shape_dchi2']:.0f} more; beyond the "
