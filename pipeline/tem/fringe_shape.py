@@ -33,7 +33,7 @@ import types
 
 import numpy as np
 
-from pipeline.tem.fringe_correction import PHASE_PER_M, PHASE_RANGE, _Coherent
+from pipeline.tem.fringe_correction import PHASE_PER_M, PHASE_RANGE, _Coherent, step_limits
 from pipeline.tem.silhouette_model import _bspline
 
 SHAPE_ITERS = 40  # Levenberg-Marquardt steps at most
@@ -113,14 +113,17 @@ class _ShapeFit:
         return JTJ, grad
 
     def step(self, c, q, JTJ, grad, lam):
-        """A damped Gauss-Newton step, each knot's move kept within SHAPE_STEP_PX."""
+        """A damped Gauss-Newton step, each knot's move kept within SHAPE_STEP_PX and each of the
+        correction's parameters within its step limit (``fringe_correction.step_limits``: unbounded, a
+        nearly unseen ln g once stepped to exp overflow)."""
         M = self.D.shape[1]
         dv = -np.linalg.solve(JTJ + lam * np.diag(np.diag(JTJ) + 1e-12), grad)
         dc = self.D @ dv[:M]
         scale = min(1.0, SHAPE_STEP_PX / (float(np.max(np.abs(dc))) + 1e-300))
         dc, dv = dc * scale, dv * scale
         qn = q.copy()
-        qn[list(SHAPE_GLOBALS)] += dv[M:]
+        lim = step_limits(q)[list(SHAPE_GLOBALS)]
+        qn[list(SHAPE_GLOBALS)] += np.clip(dv[M:], -lim, lim)
         qn[2] = np.clip(qn[2], *np.log(PHASE_RANGE))
         if self.sign:
             qn[1] = self.sign * max(self.sign * qn[1], 0.0)
