@@ -12,7 +12,7 @@ from pipeline import mechanics as mech
 from pipeline.forces.io import load_forces
 from pipeline.inversion.hgrid import interp_loglog, mc_grid_index
 from pipeline.inversion.io import load_fit, load_inversion
-from pipeline.inversion.shape import clip_n
+from pipeline.inversion.shape import LN_Q_MAX, clip_n, clip_samples
 from pipeline.inversion.stage import run_inversion
 from pipeline.synth.stage_inputs import write_synthetic_inputs
 
@@ -87,6 +87,22 @@ def test_clip_n_policy():
     assert flag == "n_clipped_to_2" and lq == pytest.approx(np.log(R))
     assert clip_n(1.5, 0.5 * np.log(R), S, 0.02)[2] == "n_below_2"
     assert clip_n(25.0, 24 * np.log(R), S, 0.02)[2] == "n_above_20"
+
+
+def test_draws_whose_q_no_float_holds_are_nan_not_an_overflow():
+    """A shape the image barely constrains (sigma_n ~ 5, as a DLC interval of the wave-optical
+    study) draws ln Q beyond +-709.8: exp overflowed in stage 4 (a RuntimeWarning in the log;
+    Q = inf was dropped later). Such draws are now NaN like the n > 20 ones; the others unchanged."""
+    R = 30e-9
+    n = np.array([3.0, 4.0, 1.9, 5.0, 6.0])
+    ln_q = np.array([2 * np.log(R), 800.0, 0.9 * np.log(R), -760.0, LN_Q_MAX - 1.0])
+    n_c, lq_c = clip_samples(n, ln_q, 1.0)
+    assert np.isnan(n_c[[1, 3]]).all() and np.isnan(lq_c[[1, 3]]).all()
+    assert n_c[0] == 3.0 and lq_c[0] == ln_q[0] and lq_c[4] == ln_q[4]
+    assert n_c[2] == 2.0 and lq_c[2] == pytest.approx(np.log(R))  # clipped keeping R
+    with np.errstate(over="raise", under="raise"):
+        q = np.exp(lq_c[np.isfinite(lq_c)])
+    assert np.all(np.isfinite(q) & (q > 0))
 
 
 def test_central_curve_is_eq12_in_rigid_mode(paperlike):

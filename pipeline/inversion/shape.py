@@ -12,8 +12,9 @@ below 2.  Policy (``n_policy`` attribute in the output):
 * n further below 2: the interval is unusable (flag ``n_below_2``), its W_A is NaN
   and stage 5 reports it with an explicit status, no number;
 * Monte-Carlo draws with n < 2 are clipped the same way (each draw keeps its own R);
-  draws with n > 20 or non-finite inputs give NaN and are counted in
-  ``valid_fraction``.
+  draws with n > 20, non-finite inputs or a Q that no float holds (|ln Q| > ln of the largest
+  double, ~709.8; only a draw from a shape the image barely constrains gets there) give NaN and
+  are counted in ``valid_fraction``.
 
 A reference interval whose n is consistent with 2 is inverted as the paraboloid of its n = 2 fit
 (:func:`shape_for_inversion`); a fit that stage 2 flagged as untrustworthy is not used.
@@ -27,6 +28,7 @@ import numpy as np
 
 N_MIN, N_MAX = 2.0, 20.0
 N_BELOW_2_TOL = 0.05  # minimum tolerance for clipping a central n < 2 to 2
+LN_Q_MAX = float(np.log(np.finfo(float).max))  # |ln Q| beyond this: Q overflows to inf or 0
 N_POLICY = (
     "central n >= 2 used as is; 2 - max(3 sigma_n, 0.05) <= n < 2 clipped to 2 keeping R "
     "(flag n_clipped_to_2); lower n: interval unusable (flag n_below_2, W_A NaN); MC draws "
@@ -111,7 +113,8 @@ def clip_n(n, ln_q, s, sigma_n=0.0):
 
 
 def clip_samples(n, ln_q, s):
-    """Clip draws with n < 2 to n = 2 keeping R: ln Q(2) = ln R = (ln Q - (n-2) ln S)/(n-1)."""
+    """Clip draws with n < 2 to n = 2 keeping R: ln Q(2) = ln R = (ln Q - (n-2) ln S)/(n-1).
+    NaN where n > 20, n <= 1.5, or Q = exp(ln Q) is not a finite positive double."""
     n = np.array(n, dtype=float)
     ln_q = np.array(ln_q, dtype=float)
     low = n < N_MIN
@@ -120,7 +123,7 @@ def clip_samples(n, ln_q, s):
         ln_r = (ln_q[low] - (n[low] - 2.0) * np.log(s)) / (n[low] - 1.0)
     ln_q[low] = ln_r
     n[low] = N_MIN
-    bad = ~(n <= N_MAX) | ~np.isfinite(ln_q) | too_low
+    bad = ~(n <= N_MAX) | ~(np.abs(ln_q) < LN_Q_MAX) | too_low
     n[bad] = np.nan
     ln_q[bad] = np.nan
     return n, ln_q
