@@ -131,6 +131,12 @@ def step_limits(q):
     return np.array([1.5, 0.25 * abs(q[1]) + 5.0, 0.5, 0.3, 0.2])
 
 
+def _exit_wave(t_o, t_c, k_o, k_c, eta):
+    """psi = exp(-(k/2) t + i eta t_outer) of chords t_o (outer body) and t_c (core) in px, with the
+    outer material's and the core's attenuations k_o, k_c (1/px) and phase eta (rad/px): module doc."""
+    return np.exp(-0.5 * (k_o * t_o + (k_c - k_o) * t_c) + 1j * eta * t_o)
+
+
 class _Coherent:
     """The coherent rendering of one fitted silhouette (module doc) on its problem's pixels."""
 
@@ -201,11 +207,10 @@ class _Coherent:
             t_o, t_c, (_, _, bands), m = self.fields(delta)
             k_o, k_c = g * self.k_o, g * self.k_c
             psi = np.ones(t_o.size, complex)  # vacuum: exp(0) = 1
-            psi[m] = np.exp(-0.5 * (k_o * t_o[m] + (k_c - k_o) * t_c[m]) + 1j * eta * t_o[m])
+            psi[m] = _exit_wave(t_o[m], t_c[m], k_o, k_c, eta)
             for bi, s_o, s_c, n_sub in bands:  # the pixels near an edge: the wave averaged over the pixel
                 if bi.size:
-                    sub = np.exp(-0.5 * (k_o * s_o + (k_c - k_o) * s_c) + 1j * eta * s_o)
-                    psi[self.p.need[bi]] = sub.reshape(-1, n_sub).mean(1)
+                    psi[self.p.need[bi]] = _exit_wave(s_o, s_c, k_o, k_c, eta).reshape(-1, n_sub).mean(1)
             _keep(self._waves, key, (psi.astype(np.complex64).reshape(self.p.shape), np.abs(psi[self.p.need]) ** 2))
         return self._waves[key]
 
