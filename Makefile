@@ -33,7 +33,7 @@ run: $(BIN)/.installed          ## run the whole pipeline on data_samples/ -> re
 # (names it does not know are ignored).  The TEM fit must give the same result on any x86-64
 # CPU, so its tests run again there: a tolerance that holds on one path only fails here.
 ALT_ARITHMETIC := OPENBLAS_CORETYPE=Prescott NPY_DISABLE_CPU_FEATURES=X86_V3,X86_V4,AVX512_ICL,AVX512_SPR
-TEM_TESTS := tests/test_tem_silhouette_fit.py tests/test_tem_profiles.py tests/test_fits.py tests/test_tem_faint_layer.py tests/test_tem_fringe.py tests/test_tem_outer_layer.py tests/test_tem_saturation.py tests/test_tem_model_error.py
+TEM_TESTS := tests/test_tem_offset_loops.py tests/test_tem_silhouette_fit.py tests/test_tem_profiles.py tests/test_fits.py tests/test_tem_faint_layer.py tests/test_tem_fringe.py tests/test_tem_outer_layer.py tests/test_tem_saturation.py tests/test_tem_model_error.py
 
 # The style checks first (seconds): a test run is not started on code the tools refuse.
 test: $(BIN)/.installed         ## the style checks (make lint), the default (fast) test suite, then the TEM tests on a second arithmetic path

@@ -46,6 +46,23 @@ def test_one_tip_through_the_whole_workflow_from_wave_images():
     assert np.max(np.abs(z)) < 2.0
 
 
+@pytest.mark.slow
+def test_an_apex_moved_in_beyond_its_radius_of_curvature_is_not_a_loop(tmp_path):
+    """Tip 1035's interval i1 (uncoated, 1.3 um overfocus, 0.41 nm px, SNR 12): the single-layer fit
+    pulled the sharp start contour 3-4 px in at the apex, beyond the reference's radius of curvature;
+    the moved curve folded into a loop, the reference took it and the edge was a 2 nm pigtail below
+    the apex (n 1.05 at its bound against 2.75: lost).  With the loop cut off (``offset_loops``) the
+    edge lies on the silhouette (measured: bias +0.04 nm, RMS 0.15 nm) and n is 2.38 +- 0.47."""
+    from pipeline.synth.calibration_study import draw_case
+
+    case = draw_case(1035, "rigid")
+    mat = wave_shapes.tip_materials(1035)
+    p = wave_shapes.interval_params(1035, 1, case.n[1], case.R, case.S, mat)
+    rec = wave_shapes.wave_interval_fit(p, tmp_path / "fit.h5", tmp_path, case.S, case.h)
+    assert not rec["lost"], rec["lost_reason"]
+    assert abs(rec["n_fit"] - rec["n_true"]) <= 2 * rec["sigma_n"] and rec["n_fit"] > 1.8
+
+
 def test_an_unusable_reference_leaves_the_tip_without_an_h_and_a_raising_stage_drops_its_interval(monkeypatch):
     """The study's bookkeeping, with stages 1-2 stubbed: interval 2's stage raises (left out, no
     curves), the reference's fit is flagged ``edge_is_core`` (the inversion finds no usable

@@ -8,6 +8,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
+from pipeline.tem.offset_loops import trimmed_loops
 from pipeline.tem.projection import chord, core_radius_sq_table
 
 # pixel integration: the projected thickness has a square-root kink at a silhouette, which
@@ -319,8 +320,10 @@ class _Problem:
 
     # ------------------------------------------------------------------ geometry
     def curve(self, c):
+        """(x, z) of the meridian with offsets ``c`` along the reference normals, any loop of the
+        moved curve cut off (``offset_loops``)."""
         d = self.Bc @ c
-        return self.x0 + d * self.nx, self.z0 + d * self.nz
+        return trimmed_loops(self.x0 + d * self.nx, self.z0 + d * self.nz, self.nx, self.nz)
 
     def spline_rows(self, S):
         """Sparse B-spline rows at arc positions S: (index (N, 4) into c, value (N, 4))."""
