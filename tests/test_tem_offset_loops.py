@@ -68,3 +68,38 @@ def test_nested_loops_are_cut_at_the_outermost_crossing():
     x, z = x0 + d * nx, z0 + d * nz
     xt, zt = trimmed_loops(x, z, nx, nz)
     assert not _crossings(xt[::4], zt[::4])
+
+
+def test_two_loops_apart_are_two_cuts():
+    """A flat worn apex (45 degree flanks) moved 3 px in folds at both rounded corners: each loop is cut
+    at its own crossing (merged into one search, neither was)."""
+    for width in (4.0, 25.0):
+        xs = np.array([-width / 2 - 20, -width / 2, width / 2, width / 2 + 20])
+        xx = np.linspace(xs[0], xs[-1], 20001)
+        _, x0, z0, nx, nz = reference_curve((xx, np.interp(xx, xs, [20, 0, 0, 20])), step=0.25, smooth_px=0.7)
+        x, z = x0 - 3.0 * nx, z0 - 3.0 * nz
+        assert len(_crossings(x[::2], z[::2])) >= 2
+        xt, zt = trimmed_loops(x, z, nx, nz)
+        assert not _crossings(xt[::2], zt[::2]), width
+
+
+def _sphere_cone(R, half_angle_deg, height=80.0):
+    """Reference meridian of a cone of the half-angle with a spherical apex of radius R (px)."""
+    a = np.radians(half_angle_deg)
+    phi = np.linspace(-(np.pi / 2 - a), np.pi / 2 - a, 2001)
+    xs, zs = R * np.sin(phi), R - R * np.cos(phi)
+    L = np.linspace(0, height, 4001)[1:]
+    xr, zr = xs[-1] + L * np.sin(a), zs[-1] + L * np.cos(a)
+    return reference_curve((np.r_[-xr[::-1], xs, xr], np.r_[zr[::-1], zs, zr]), step=0.25, smooth_px=0.0)
+
+
+@pytest.mark.parametrize("half_angle, R, d", [(10, 3, -12), (5, 5, -9.5), (15, 3, -15)])
+def test_a_sharp_tip_moved_in_far_is_cut_where_its_flanks_cross(half_angle, R, d):
+    """On a sharp tip the crossing lies ~(|d| - R) / tan(half-angle) up the flanks, beyond the fine
+    search's 40 px: the coarse search finds it."""
+    _, x0, z0, nx, nz = _sphere_cone(R, half_angle)
+    x, z = x0 + d * nx, z0 + d * nz
+    xt, zt = trimmed_loops(x, z, nx, nz)
+    assert not _crossings(xt[::2], zt[::2])
+    corner = np.argmin(zt)
+    assert xt[corner] == pytest.approx(0.0, abs=0.05)
