@@ -684,3 +684,38 @@ def test_the_edge_s_shape_is_refitted_with_the_fringes(tmp_path):
     assert abs(g["dn"]) < 0.25, g["dn"]
     assert abs(g["pulloff_error"]) < 0.1, g["pulloff_error"]
     assert g["n_covered"] and g["pulloff_covered_mc"]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="known, not fixed: a blunt oxide tip read as one material gives n low (README, 'blunt oxide tips read "
+    "as one material give n low'): its flat face lies further outside the true silhouette than its corner and "
+    "flanks, already in the Beer-Lambert fit; neither the coated model with the true thickness given nor the "
+    "simulator's coherence envelopes mend this image",
+)
+def test_a_blunt_oxide_tip_read_as_one_material_gives_n(tmp_path):
+    """Held-out image 31 (``bench_tem_independent --seed0 1000``, its parameters exactly): n 4.77, a 1.22 nm
+    oxide, 0.48 um underfocus at 101 kV, 0.135 nm px, SNR 23.  Fitted as one material, the flat face lies
+    +0.23 nm outside the true silhouette, the flanks +0.01 to +0.10 nm, and n comes out 0.40 low at a
+    reported sigma_n of 0.24 (covered).  This fails on purpose until the face is placed like the flanks."""
+    from pipeline.synth.tem_wave import TemWaveParams
+
+    p = TemWaveParams(
+        n=4.770267657838894, R=1.7890023874102682e-08, S=1.6621546713394848, z_join=2.2919985309158974e-08,
+        shank_half_angle_deg=12.976930210929474, blend_length=3.129811734846841e-08, asymmetry=0.0, layer="oxide",
+        layer_thickness=1.2221002501158593e-09, core_absorption_length_200kv=4.0749372890502456e-08,
+        layer_contrast=0.2468056455822959, contamination_contrast=0.2865010206833828, particles=(),
+        pixel_size=1.3494211524055034e-10, shape=(1024, 1024), apex_px=(698.3432641782922, 596.6552273524655),
+        rotation_deg=11.990812899785702, orientation="down", kv=101.0793159871413, defocus=4.769601655567905e-07,
+        cs=0.0011808214403477737, aperture=0.015892061573900485, illumination_angle=5.3961744289170064e-05,
+        cc=0.0017656438498680177, energy_spread_ev=0.5596204155861415, snr=22.817707968214826, bits=16,
+        background_level=0.5151490095459585, float_gain=12.500783851674687, offset=113.09042802321098,
+        read_noise=1.847710315018297, psf_sigma=0.4308076709114407, psf_tail_weight=0.10839949527635821,
+        psf_tail_length=3.0003986107550245, illumination_gradient=0.019239984542116523,
+        gradient_angle_deg=238.66974243803276, vignetting=0.013978151877753787, seed=1031,
+    )  # fmt: skip
+    g, _ = _graded(tmp_path, p)
+    assert not g["lost"], g["lost_reason"]
+    assert g["n_covered"]  # covered today (dn -0.40 at sigma_n 0.24)
+    assert abs(g["dn"]) <= 0.15, g["dn"]  # -0.40 today
