@@ -199,6 +199,28 @@ def test_coherent_model_is_a_function_of_its_parameters(fitted_problem):
     assert np.array_equal(co.residual(q), fresh)
 
 
+def test_the_exit_wave_is_the_simulator_s_for_a_core_in_a_layer():
+    """The rendering's exit wave of a coated body, phi = eta t_outer + (eta_c - eta) t_core, is the
+    wave-optical simulator's sum over materials (``tem_wave._wave``: the core's chord at its own
+    potential, the layer's, t_outer - t_core, at the layer's), to rounding; one material (eta_c = eta,
+    t_core = t_outer) is exp(-k t / 2 + i eta t) exactly."""
+    from types import SimpleNamespace
+
+    from pipeline.synth.tem_wave import _wave
+    from pipeline.tem.fringe_correction import CORE_PHASE_RATIO, _exit_wave
+
+    rng = np.random.default_rng(7)
+    t_o = rng.uniform(0.0, 80.0, 500)
+    t_c = t_o * rng.uniform(0.0, 1.0, 500)  # the core's chord lies within the outer one
+    k_o, k_c, eta = 0.004, 0.03, 0.02
+    eta_c = CORE_PHASE_RATIO * eta
+    pot, lam_abs = {"Si": eta_c, "SiO2": eta}, {"Si": 1.0 / k_c, "SiO2": 1.0 / k_o}
+    sim = _wave({"core": t_c, "layer": t_o - t_c}, pot, lam_abs, 1.0, SimpleNamespace(layer="oxide"))
+    np.testing.assert_allclose(_exit_wave(t_o, t_c, k_o, k_c, eta, eta_c), sim, rtol=0, atol=1e-12)
+    one = _exit_wave(t_o, t_o, k_c, k_c, eta, eta)
+    assert np.array_equal(one, np.exp(-0.5 * (k_c * t_o) + 1j * (eta * t_o)))
+
+
 def test_edge_profile_keeps_the_body_where_the_vacuum_is_clipped(fitted_problem):
     """The 1-D screen's body profile comes from every fitted pixel (chords do not depend on the data),
     its data from the unclipped ones only.  Built from the unclipped pixels alone, the body stopped
