@@ -321,11 +321,12 @@ def _offset_sd(JTJ, scale):
     return float(np.sqrt(var)) if np.isfinite(var) and var >= 0 else float("nan")
 
 
-def fringe_offset(prob, fitter, st, pixel_size, iters=10, sign=0, one_material=False):
+def fringe_offset(prob, fitter, st, pixel_size, iters=10, sign=0, one_material=False, start=None):
     """Fit of the coherent rendering of the fitted silhouette ``st`` (module doc), at either sign of
     the defocus (``sign`` 0) or at the sign given (+1 underfocus, -1 overfocus); with ``one_material``
     the fitted outer curve is rendered as one body of the core's material ("A light layer that is the
-    dark fringe").  Returns a dict:
+    dark fringe"); with ``start`` (q, as ``_Coherent.residual``'s) the fit starts there alone, without
+    the screen of starts (a body close to one already fitted: ``held_layer``).  Returns a dict:
     offset_px (uniform outward offset of the edge), offset_sd_px (its noise), model_sd_px (its model
     error, ``MOVE_SD_SHARE`` x |offset|), A_px2 (lambda df / px^2), eta
     (rad/px), sigma_px (blur), attenuation_scale (g), dchi2 (chi^2 decrease against the Beer-Lambert
@@ -342,8 +343,11 @@ def fringe_offset(prob, fitter, st, pixel_size, iters=10, sign=0, one_material=F
         A = fa * a_max
         # the fringe shifts the transmission edge outwards by up to ~sqrt(|A|) (more in overfocus)
         starts.append(np.array([-(0.8 if A < 0 else 0.3) * np.sqrt(abs(A)), A, 0.0, ls0, 0.0]))
-    runs = [co.lm(q, START_STEPS) for q in _screened_starts(prob, st, co, starts, a_max)]
-    q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
+    if start is None:
+        runs = [co.lm(q, START_STEPS) for q in _screened_starts(prob, st, co, starts, a_max)]
+        q, cost, _ = co.lm(min(runs, key=lambda t: t[1])[0], iters)
+    else:
+        q, cost, _ = co.lm(np.asarray(start, float), iters)
     r = co.residual(q)
     J = co.jacobian(q, r)
     JTJ = J.T @ J  # at the solution

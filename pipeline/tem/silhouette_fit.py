@@ -123,6 +123,7 @@ from pipeline.tem.fringe_correction import LAYER_AS_FRINGE_MAX, MOVE_SD_SHARE, f
 from pipeline.tem.fringe_correction import MIN_CHI2_RED as FRINGE_MIN_CHI2_RED
 from pipeline.tem.fringe_correction import MIN_DCHI2 as FRINGE_MIN_DCHI2
 from pipeline.tem.fringe_shape import fringe_shape
+from pipeline.tem.held_layer import held_layer
 from pipeline.tem.model_error import LAYER_SD, common_offset_sd_px
 from pipeline.tem.silhouette_model import (
     KNOT_NM,
@@ -289,6 +290,12 @@ def _defocus_fringes(prob, fit, single, pixel_size, coat_hint, sign):
         fringe["sign"] = int(sign)
     if coat_hint is None and _layer_may_be_read_as_fringe(fitter, st, free):
         alt = _coated_alternative(prob, single, st, fringe, pixel_size, sign)
+        if alt is not None:
+            return alt
+    if coat_hint is None and not fitter.coated and fringe.get("applied"):  # a layer only the rendering sees
+        _, _, k0, max_coat, _ = single
+        lim2 = _bounds(prob.K, k0, max_coat, True)
+        alt = held_layer(prob, fitter, st, fringe, pixel_size, max_coat, lim2, sign)
         if alt is not None:
             return alt
     return fitter, st, JTJ, names, coat_test, fringe

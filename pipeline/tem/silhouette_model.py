@@ -233,6 +233,10 @@ def _chord_in_place(r2, xx, below):
     return r2
 
 
+# what ``_Problem.update_pixel_map`` and ``offset_map`` set: the pixel map
+_MAP_ATTRS = ("_j_res", "_j_ref", "dist_need", "u_res", "Phi", "map_c", "map_coat")
+
+
 class _Problem:
     """Fixed pixel geometry, data and the forward model of one silhouette fit."""
 
@@ -374,6 +378,17 @@ class _Problem:
         n = idx.shape[0]
         self.Phi = sparse.csr_matrix((val.ravel(), (np.repeat(np.arange(n), 4), idx.ravel())), shape=(n, self.K))
         self.map_c, self.map_coat = c.copy(), float(coat)
+        self.version = getattr(self, "version", 0) + 1
+
+    def map_kept(self):
+        """The pixel map as it is (``update_pixel_map``'s attributes), for ``restore_map``."""
+        return {k: getattr(self, k, None) for k in _MAP_ATTRS}
+
+    def restore_map(self, kept):
+        """Put back the pixel map ``kept`` (``map_kept``) after a trial of other bodies, under a new version
+        (the states evaluated meanwhile are not reused): the fit goes on as if they had not been tried."""
+        for k, v in kept.items():
+            setattr(self, k, v)
         self.version = getattr(self, "version", 0) + 1
 
     def offset_map(self, c, coat, delta, sd0):
