@@ -64,6 +64,13 @@ thickness on every image instead (by the Beer-Lambert chi^2) read the dark fring
 overfocus as more layer (grid 56: 2.2 nm outward) and cost ~4x; the coherent chi^2 keeps those
 one-material (README, issue 16).
 
+A layer only the coherent rendering sees (``held_layer``): where the correction of a one-material fit
+is applied and no coated alternative above was taken, the same outer curve is rendered coherently with
+a held light layer of 0.8-2.4 nm (a native oxide) under it, and taken where that fits better by more
+than 10 % of chi^2: on a blunt tip the phase step between an oxide and the core makes a fringe at the
+flat face that one material places by moving the face out (n low by a median 0.31 on the oxides with
+n > 4.5 of ``bench_tem_independent``'s three sets).  Not taken, the fit goes on as if none had been tried.
+
 The sign of the defocus given (``defocus_sign``, the tip YAML's ``tem.defocus``): chi^2 does not
 identify the sign (``fringe_correction``, "Why chi^2 cannot tell the sign"), the microscope's
 operator knows it.  The correction is fitted at both signs as without it; where that takes the
@@ -108,7 +115,7 @@ correlated, so a point-wise residual scatter would understate it).
 
 Modules: ``silhouette_model`` (the forward model: body, image, binning), ``silhouette_solver``
 (Levenberg-Marquardt, Jacobians, polish), ``coating_search`` (the coated model's starts and the
-layer decision) and this one (the public fit :func:`fit_silhouette` and its result).
+layer decision), ``held_layer`` (a layer only the coherent rendering sees) and this one (the public fit :func:`fit_silhouette` and its result).
 """
 
 from __future__ import annotations
