@@ -13,7 +13,9 @@ What.  Where the fringe correction of a one-material fit is applied, the same ou
 a coated body with a layer of each of ``THICKNESSES_NM`` (the native oxides' range), its attenuation
 ``LAYER_CONTRAST`` x the fit's and the core's the fit's, each fitted coherently (offset, defocus, phase,
 blur, attenuation scale) for ``SCREEN_STEPS`` Levenberg-Marquardt steps from the one-material
-correction's solution.  The best is fitted to convergence, and taken where its coherent chi^2 is below
+correction's solution, thinnest first, until one fits worse than the one before (chi^2 against the
+thickness had one minimum on the images measured; on an uncoated tip the thinnest is the best).  The
+best is fitted to convergence, and taken where its coherent chi^2 is below
 the one-material rendering's by more than ``MIN_GAIN`` of it.  Its shape is then refitted with the
 coherent rendering like every corrected edge (``fringe_shape``); the layer's thickness and contrast stay
 held (they are a screen's grid values, not fitted: the Beer-Lambert fit of them, held or free, ran off,
@@ -83,14 +85,17 @@ def _held_layer(prob, f1, st, fringe, pixel_size, max_coat, lim2, sign):
     cost1 = fringe["chi2"]
     q0 = _start(fringe, sigma, pixel_size)
     f2 = _Fitter(prob, coated=True)
-    best = None
+    best, last = None, np.inf
     for t_nm in THICKNESSES_NM:
         t = t_nm * 1e-9 / float(pixel_size or 0.25e-9)
         if t < MIN_COAT_PX or t > MAX_COAT_SHARE * max_coat:
             continue
         q, cost, _ = _Coherent(prob, f2, _held_state(f2, c, sigma, k, t), pixel_size, sign).lm(q0, SCREEN_STEPS)
+        if best is not None and cost > last:
+            break  # past the best thickness (module doc)
         if best is None or cost < best[0]:
             best = (cost, t, q)
+        last = cost
     if best is None or best[0] > (1 - MIN_GAIN) * cost1:
         return None
     _, t, q = best
