@@ -21,10 +21,13 @@ coherent rendering like every corrected edge (``fringe_shape``); the layer's thi
 held (they are a screen's grid values, not fitted: the Beer-Lambert fit of them, held or free, ran off,
 and its shape with them; section "Tried").  The edge's flags say so.
 
-Measured (prototype, README issue 16): on 9 oxides of n 4.8-6.0 read as one material, 7 were taken, n
-improved on 6 of them (held-out 31 -0.40 -> +0.04, grid 76 -0.90 -> -0.29, grid 100 -0.71 -> -0.22,
-held-out 13 -0.32 -> -0.03) and worse on one (grid 79, a clipped vacuum: -0.29 -> -0.49, its edge RMS
-0.56 -> 0.28 nm); on 5 uncoated controls the best layer's chi^2 lay 16-87 % above one material's.
+Measured (``bench_tem_independent``'s three sets, 260 images, README issue 16): taken on 17 (5 grid, 9
+held-out, 3 DLC set), no uncoated tip among them; |dn| smaller by 0.06-0.62 on 8 (held-out 31 -0.40 ->
++0.04, grid 76 -0.90 -> -0.28, grid 31 -0.42 -> -0.13, held-out 13 -0.32 -> -0.03), larger by 0.04 and
+0.05 on two (grid 16, its edge RMS 0.27 -> 0.14 nm; DLC set 75, covered), the pull-off closer on 13; the
+blunt oxides' (n > 4.5) median dn -0.26 -> -0.13.  Not taken on the one-material
+fits of uncoated tips: the best layer's chi^2 lay 16-87 % above one material's on the five checked.
+Cost: 0.8 s median per image where it is tried and none is taken, 1.9 s where one is (held-out set).
 
 Tried.  The coated model fitted under Beer-Lambert with the thickness held at each value (the contrast
 free): it drove the contrast to its bound (0.03-0.05) and its rendering was poor; with the contrast held
