@@ -208,7 +208,11 @@ def test_the_held_layer_screen_starts_at_the_correction_s_solution(fitted_proble
 
     prob, fitter, st, pixel_size = fitted_problem
     fr = fringe_offset(prob, fitter, st, pixel_size)
-    again = fringe_offset(prob, fitter, st, pixel_size, start=_start(fr, fitter.unpack(st.v)[1], pixel_size))
+    q = _start(fr, fitter.unpack(st.v)[1], pixel_size)
+    there = fringe_offset(prob, fitter, st, pixel_size, iters=0, start=q)  # no step: the start itself
+    for key in ("chi2", "offset_px", "A_px2", "eta", "sigma_px", "attenuation_scale"):
+        assert there[key] == pytest.approx(fr[key], rel=1e-9, abs=1e-12), key
+    again = fringe_offset(prob, fitter, st, pixel_size, start=q)
     assert again["chi2"] <= fr["chi2"] * (1 + 1e-6), (again["chi2"], fr["chi2"])
     # the correction stops where chi^2 falls by < 1e-4 of itself per step; continued, the offset moved 0.046 px
     # (0.014 nm, 2 % of the correction's model SD): within 0.1 px, far inside the edge's 0.15 nm
@@ -219,8 +223,8 @@ def test_the_held_layer_screen_starts_at_the_correction_s_solution(fitted_proble
 
 def test_a_held_layer_not_taken_changes_nothing(defocused):
     """On the uncoated defocused tip the held layers are tried (the one-material fit's correction is
-    applied) and none is taken; the profile is then the same to the bit as with none tried: the problem's
-    pixel map is put back (``_Problem.restore_map``)."""
+    applied) and none is taken; the profile is then the same to the bit as with none tried (the problem's
+    pixel map is put back, ``_Problem.restore_map``, and what follows maps afresh anyway)."""
     import pipeline.tem.silhouette_fit as sf
 
     prof, _, _, _ = defocused

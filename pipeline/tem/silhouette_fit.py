@@ -115,7 +115,8 @@ correlated, so a point-wise residual scatter would understate it).
 
 Modules: ``silhouette_model`` (the forward model: body, image, binning), ``silhouette_solver``
 (Levenberg-Marquardt, Jacobians, polish), ``coating_search`` (the coated model's starts and the
-layer decision), ``held_layer`` (a layer only the coherent rendering sees) and this one (the public fit :func:`fit_silhouette` and its result).
+layer decision), ``held_layer`` (a layer only the coherent rendering sees) and this one (the public
+fit :func:`fit_silhouette` and its result).
 """
 
 from __future__ import annotations
@@ -272,7 +273,8 @@ def _fit_pixels(
         fitter, st, JTJ, names, coat_test, fringe = _defocus_fringes(
             prob, fit, (f1, st1, k0, max_coat, max_iter), pixel_size, coat_hint, sign
         )
-    if fringe_correction and coat_hint is None and sign < 0 and _thin_layer(fitter, st, pixel_size):
+    held = coat_test.get("held_layer", False)  # it already beat the one material ``_layer_as_fringe`` renders
+    if fringe_correction and coat_hint is None and sign < 0 and not held and _thin_layer(fitter, st, pixel_size):
         coat_test, fringe = _layer_as_fringe(prob, fitter, st, coat_test, fringe, pixel_size)
     prob.map_c = None
     return _result(prob, fitter, st, JTJ, names, n_it, hpx, coat_test, pixel_size, fringe)
