@@ -221,6 +221,34 @@ def test_the_held_layer_screen_starts_at_the_correction_s_solution(fitted_proble
     assert abs(again["A_px2"] - fr["A_px2"]) < 0.1 * abs(fr["A_px2"]), (again["A_px2"], fr["A_px2"])  # 4 %
 
 
+def test_a_layer_that_beats_only_a_poorly_converged_one_material_fit_is_not_taken(fitted_problem):
+    """On the uncoated defocused tip, told that the one-material correction ended at 3 x its chi^2 (as an
+    uncoated end-to-end interval's did, in a poor basin of the fringes, on one thread): the best held
+    layer beats that, but one material refitted from where the layer's fit ended beats the layer, so
+    none is taken (``held_layer``, "The same start for both")."""
+    import pipeline.tem.held_layer as hl
+    from pipeline.tem.silhouette_fit import _bounds
+
+    prob, fitter, st, pixel_size = fitted_problem
+    fr = hl.fringe_offset(prob, fitter, st, pixel_size)
+    poor = dict(fr, chi2=3.0 * fr["chi2"])
+    calls = []
+
+    def spy(prob, fitter, *a, **k):
+        out = hl_fringe_offset(prob, fitter, *a, **k)
+        calls.append((fitter.coated, out["chi2"]))
+        return out
+
+    hl_fringe_offset = hl.fringe_offset
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(hl, "fringe_offset", spy)
+        alt = hl.held_layer(prob, fitter, st, poor, pixel_size, 12.0, _bounds(prob.K, 0.02, 12.0, True))
+    assert [coated for coated, _ in calls] == [True, False], calls  # the layer passed the first gate
+    assert calls[0][1] < 0.9 * poor["chi2"], calls
+    assert alt is None
+    assert calls[1][1] < calls[0][1], calls  # one material, refitted, fits better than the layer
+
+
 def test_a_held_layer_not_taken_changes_nothing(defocused):
     """On the uncoated defocused tip the held layers are tried (the one-material fit's correction is
     applied) and none is taken; the profile is then the same to the bit as with none tried (the problem's
