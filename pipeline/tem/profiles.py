@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.single_thread import single_threaded
 from pipeline.tem.edges import (
     TipFrame,
     _Fail,
@@ -487,6 +488,7 @@ def _defocus_sign(refine, defocus):
     return DEFOCUS_SIGNS[defocus]
 
 
+@single_threaded
 def extract_profile(
     image: TemImage,
     orientation="auto",
@@ -505,7 +507,9 @@ def extract_profile(
     "overfocus" (``silhouette_fit``, "The sign of the defocus given").
     After the global fit, a faint layer seen beyond the edge on each flank alone (``faint_layer``)
     moves the edge out by the layer's thickness read from the image (``outer_layer``), or, where that
-    cannot be read at the apex, marks the profile the core's (``edge_is_core``)."""
+    cannot be read at the apex, marks the profile the core's (``edge_is_core``).  Runs on one BLAS
+    thread whatever the environment says (``pipeline.single_thread``): the result does not depend on
+    the machine's core count."""
     sign = _defocus_sign(refine, defocus)
     path = image.path or "<image>"
     px = image.pixel_size
