@@ -408,14 +408,9 @@ def test_the_attenuation_follows_the_moved_edge(tmp_path):
     assert abs(g["edge_bias"]) <= 2 * g["edge_bias_sd"] and g["n_covered"] and g["pulloff_covered_mc"]
 
 
-def test_a_light_layer_read_as_a_fringe_is_fitted_as_a_layer(tmp_path):
-    """Grid image 119 (``bench_tem_independent``, its parameters exactly): a 4.4 nm DLC layer of 27 %
-    contrast, 121 nm underfocus, 0.345 nm px.  Phase contrast sharpens the edge, the fitted blur sits
-    at its floor and the coating search tried no layer; fitted as one material (its edge on the outer
-    surface, 0.03 nm), the fringe correction explained the layer as the dark fringe of a 2.8 um
-    overfocus (the wrong sign) and moved the edge 1.65 nm inwards (n 4.53 for 5.82).  The coated model,
-    searched over every thickness and rendered coherently as well, fits the image better (chi^2 6.2e4
-    against 1.37e5): the edge stays on the outer surface."""
+def _grid_119():
+    """Grid image 119 of ``bench_tem_independent``, its parameters exactly: a 4.4 nm DLC layer of 27 %
+    contrast, 121 nm underfocus, 0.345 nm px."""
     from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
 
     parts = (
@@ -429,7 +424,7 @@ def test_a_light_layer_read_as_a_fringe_is_fitted_as_a_layer(tmp_path):
             (9.955931766671963e-09, 3.072897191418122e-09, 3.811784829116368e-09), 0.5, 0.0, "shank",
         ),
     )  # fmt: skip
-    p = TemWaveParams(
+    return TemWaveParams(
         n=5.824961597498439, R=2.776702973689934e-08, S=1.8190175107825273, z_join=1.1158194865646262e-08,
         shank_half_angle_deg=21.349554746282152, blend_length=1.0716264396271931e-08,
         asymmetry=0.032396582724843415, layer="DLC", layer_thickness=4.433517298369366e-09,
@@ -444,12 +439,44 @@ def test_a_light_layer_read_as_a_fringe_is_fitted_as_a_layer(tmp_path):
         psf_tail_length=4.681314533933355, illumination_gradient=0.07536616213654145,
         gradient_angle_deg=191.93604004971232, vignetting=0.06072941213728616, seed=119,
     )  # fmt: skip
+
+
+def test_a_light_layer_read_as_a_fringe_is_fitted_as_a_layer(tmp_path):
+    """Grid image 119 (``bench_tem_independent``, its parameters exactly): a 4.4 nm DLC layer of 27 %
+    contrast, 121 nm underfocus, 0.345 nm px.  Phase contrast sharpens the edge, the fitted blur sits
+    at its floor and the coating search tried no layer; fitted as one material (its edge on the outer
+    surface, 0.03 nm), the fringe correction explained the layer as the dark fringe of a 2.8 um
+    overfocus (the wrong sign) and moved the edge 1.65 nm inwards (n 4.53 for 5.82).  The coated model,
+    searched over every thickness and rendered coherently as well, fits the image better (chi^2 6.2e4
+    against 1.37e5): the edge stays on the outer surface."""
+    p = _grid_119()
     g, _ = _graded(tmp_path, p)
     assert not g["lost"], g["lost_reason"]
     assert g["coating_model"] == "coated" and 3.0e-9 < g["coating_found"] < 5.5e-9, g["coating_found"]
     assert any(f.startswith("a light layer, not a fringe") for f in g["edge_flags"]), g["edge_flags"]  # in words
     assert abs(g["edge_bias"]) < 0.15e-9, g["edge_bias"]  # -1.62 nm read as a fringe; +0.03 nm now
     assert g["n_covered"] and g["pulloff_covered_mc"], (g["dn"], g["sigma_n"])
+
+
+def test_a_light_layer_against_the_sign_given_keeps_the_conflict_term(tmp_path):
+    """Grid image 119 with the operator's ``tem.defocus: underfocus`` (the true sign): the one-material fit
+    of both signs still takes overfocus (its layer read as the dark fringe), so the fringes are fitted at
+    the sign given, and the coated model, rendered at that sign, is taken.  The conflict between the two
+    signs stays with it, in words and as the common uncertainty (half the two one-material edges'
+    distance, 0.44 nm), as on a one-material edge (the flag and the covariance's term come together in
+    ``silhouette_fit._result``): the coated body's own fit of both signs is not made, so the sign given is
+    as open as before.  Before, the coated edge dropped it (edge SD 2.08 -> 2.13 nm; on grid images 4, 64
+    and 94 as well, n unchanged, sigma_n within 0.1 %)."""
+    g, _ = _graded(tmp_path, _grid_119(), defocus="underfocus")
+    assert not g["lost"], g["lost_reason"]
+    assert g["coating_model"] == "coated", g["coating_model"]
+    assert any(f.startswith("a light layer, not a fringe") and "against the sign given" in f for f in g["edge_flags"])
+    against = [f for f in g["edge_flags"] if f.startswith("defocus given as underfocus")]
+    assert against and "took lambda x defocus -" in against[0], g["edge_flags"]
+    sd = float(against[0].split("the two fits' edges, ")[1].split(" nm")[0]) * 1e-9
+    assert 0.2e-9 < sd < 0.8e-9, sd  # 0.44 nm
+    assert g["edge_bias_sd"] > sd, g["edge_bias_sd"]  # 2.13 nm (2.08 nm without the conflict term)
+    assert abs(g["edge_bias"]) < 0.15e-9 and g["n_covered"], (g["edge_bias"], g["dn"], g["sigma_n"])
 
 
 def _grid_100():

@@ -349,7 +349,10 @@ def _coated_alternative(prob, single, st, fringe, pixel_size, sign=0):
     """The coated model with every layer thickness tried, polished and rendered coherently
     (``fringe_offset``, at the defocus's sign if given); returned as (fitter, state, J^T J, names,
     coating test, fringe) where its chi^2 is below that of the one-material fit's rendering (``st``,
-    ``fringe``: coherent where applied, else Beer-Lambert), else None."""
+    ``fringe``: coherent where applied, else Beer-Lambert), else None.  With the sign of the defocus given
+    against the fit of both signs, the one-material correction's conflict term (``free_A_px2``,
+    ``conflict_sd_px``) is carried over, as ``held_layer`` and ``_layer_as_fringe`` do: the coated body's
+    own fit of both signs is not made, so whether the sign given is right is as open as before."""
     f1, st1, k0, max_coat, max_iter = single
     f2 = _Fitter(prob, coated=True)
     lim2 = _bounds(prob.K, k0, max_coat, True)
@@ -363,6 +366,8 @@ def _coated_alternative(prob, single, st, fringe, pixel_size, sign=0):
     cost2 = fr2["chi2"] if fr2["applied"] else fr2["chi2_beer_lambert"]
     if cost2 >= cost1:
         return None
+    if "free_A_px2" in fringe:  # the sign given against the fit of both signs: its conflict term stays
+        fr2.update(free_A_px2=fringe["free_A_px2"], conflict_sd_px=fringe["conflict_sd_px"])
     nm = 1e9 * (pixel_size or float("nan"))
     test["layer_not_fringe"] = True
     test["note"] = (
