@@ -11,7 +11,11 @@ by it: "allowed" where an unbiased fit at the bound would meet |dn| <= 0.1 (or t
 pull-off within 3 %, Eq. 12, h 1-6 nm) with 95 % probability.  Prints, per split and overall:
 images, lost, the targets met, the median ratio of the error to the bound (1 = a fit at the
 bound), and n and pull-off coverage.  --bounds-csv: reuse bounds computed before (the
-Fisher computation is ~0.5-12 s per image).  Never fails on error or time.
+Fisher computation is ~0.5-25 s per image, ~30 min for the three sets on 2 cores); the three sets'
+are kept in ``benchmarks/data/`` (``tem_bounds_grid.csv``: seed0 0; ``tem_bounds_held_out.csv``:
+--seed0 1000; ``tem_bounds_dlc.csv``: --seed0 3000 --fix layer=DLC), and
+``tests/test_tem_wave_bound.py`` recomputes one image of each against them, so a change of the
+simulator or of the bound says when to compute them again.  Never fails on error or time.
 """
 
 from __future__ import annotations
@@ -38,15 +42,27 @@ def bound_one(job):
     return dict(i=i, **twin_bound(case(i, seed0, fixed)))
 
 
+def _set_label(fixed):
+    """The ``--fix`` keywords as the bounds file records them ("none" for none)."""
+    return " ".join(f"{k}={v}" for k, v in sorted((fixed or {}).items())) or "none"
+
+
 def bounds(n_images, seed0, fixed, jobs, path=None):
     """The bounds of images 0..n_images-1, read from ``path`` if it holds them all, else computed
-    (and written there)."""
+    (and written there).  The file records the set (``seed0``, ``fix``): a file of another set is
+    refused, not used (its images are other images)."""
     if path and os.path.exists(path):
         b = pd.read_csv(path)
+        if "seed0" in b and (set(b.seed0) != {seed0} or set(b.fix) != {_set_label(fixed)}):
+            raise SystemExit(
+                f"{path} holds the bounds of --seed0 {sorted(set(b.seed0))} --fix {sorted(set(b.fix))!r}, "
+                f"not of --seed0 {seed0} --fix {_set_label(fixed)!r}: give another --bounds-csv"
+            )
         if set(range(n_images)) <= set(b.i):
             return b
     rows = []
     for r in map_images(bound_one, [(i, seed0, fixed) for i in range(n_images)], jobs):
+        r.update(seed0=seed0, fix=_set_label(fixed))
         rows.append(r)
         print(
             f"  {r['i']:4d} CRB_n {r['crb_n']:.4f}  CRB pull-off {100 * r['crb_pulloff']:.2f} %  "

@@ -1,5 +1,7 @@
 """The Cramér-Rao yardstick of the wave-optical grid (``pipeline.synth.tem_wave_bound``)."""
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -64,3 +66,32 @@ def test_the_bound_falls_as_one_over_the_root_of_the_dose():
     assert b4["crb_n"] == pytest.approx(b1["crb_n"] / 2, rel=1e-9)
     assert b4["p_dn"] > b1["p_dn"]
     assert b1["allowed_dn"] == (b1["p_dn"] >= 0.95)
+
+
+KEPT_BOUNDS = Path(__file__).resolve().parents[1] / "benchmarks" / "data"
+# file kept for bench_tem_bound.py --bounds-csv: (--seed0, --fix keywords, an image recomputed: a quick one)
+KEPT_SETS = {
+    "tem_bounds_grid.csv": (0, {}, 79),
+    "tem_bounds_held_out.csv": (1000, {}, 30),
+    "tem_bounds_dlc.csv": (3000, {"layer": "DLC"}, 10),
+}
+
+
+@pytest.mark.parametrize("name", sorted(KEPT_SETS))
+def test_the_bounds_kept_for_the_benchmarks_are_this_code_s(name):
+    """The three sets' bounds kept in ``benchmarks/data`` (so that ``bench_tem_bound.py`` splits a run in
+    seconds, not ~30 min of Fisher computation) are what the simulator and the bound give now: one image
+    of each recomputed.  Where this fails, the simulator (``tem_wave.draw_params``, ``simulate``'s dose)
+    or the bound changed: compute the file again (``bench_tem_bound.py GRADES.csv --bounds-csv NEW``)."""
+    from pipeline.synth.tem_wave import draw_params
+
+    seed0, fixed, i = KEPT_SETS[name]
+    kept = pd.read_csv(KEPT_BOUNDS / name)
+    assert set(kept.seed0) == {seed0} and set(kept.i) == set(range(len(kept)))
+    row = kept[kept.i == i].iloc[0]
+    kw = dict(layer=("none", "oxide", "DLC")[i % 3], apex_particles=bool((i // 3) % 2))  # bench_tem_independent.case
+    kw.update(fixed)
+    b = twin_bound(draw_params(seed0 + i, **kw))
+    assert b["crb_n"] == pytest.approx(row.crb_n, rel=1e-6)
+    assert b["crb_pulloff"] == pytest.approx(row.crb_pulloff, rel=1e-6)
+    assert (bool(b["allowed_dn"]), bool(b["allowed_pulloff"])) == (bool(row.allowed_dn), bool(row.allowed_pulloff))
