@@ -49,11 +49,13 @@ def _set_label(fixed):
 
 def bounds(n_images, seed0, fixed, jobs, path=None):
     """The bounds of images 0..n_images-1, read from ``path`` if it holds them all, else computed
-    (and written there).  The file records the set (``seed0``, ``fix``): a file of another set is
-    refused, not used (its images are other images)."""
+    (and written there).  The file records the set (``seed0``, ``fix``): a file of another set, or one
+    that does not say, is refused, not used (its images may be other images)."""
     if path and os.path.exists(path):
         b = pd.read_csv(path)
-        if "seed0" in b and (set(b.seed0) != {seed0} or set(b.fix) != {_set_label(fixed)}):
+        if "seed0" not in b or "fix" not in b:
+            raise SystemExit(f"{path} does not record its set (columns seed0, fix): compute the bounds again")
+        if set(b.seed0) != {seed0} or set(b.fix) != {_set_label(fixed)}:
             raise SystemExit(
                 f"{path} holds the bounds of --seed0 {sorted(set(b.seed0))} --fix {sorted(set(b.fix))!r}, "
                 f"not of --seed0 {seed0} --fix {_set_label(fixed)!r}: give another --bounds-csv"
@@ -140,6 +142,8 @@ def main(argv=None):
     ap.add_argument("--csv", default=None, help="write grades and bounds joined to this CSV")
     a = ap.parse_args(argv)
     g = pd.read_csv(a.grades)
+    if "seed" in g and set(g.seed - g.i) != {a.seed0}:
+        raise SystemExit(f"{a.grades} holds the images of --seed0 {sorted(set(g.seed - g.i))}: give that --seed0")
     b = bounds(len(g), a.seed0, _parse_fixed(a.fix), a.jobs, a.bounds_csv)
     d = g.merge(b, on="i")
     print_table(split_table(d))

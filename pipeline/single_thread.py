@@ -21,7 +21,11 @@ __all__ = ["single_threaded"]
 
 
 def single_threaded(fn):
-    """``fn`` with every BLAS and OpenMP thread pool limited to one thread while it runs (restored after)."""
+    """``fn`` with every BLAS and OpenMP thread pool limited to one thread while it runs (restored after).
+
+    The limit is the process's (threadpoolctl sets the libraries' own thread counts) and reaches only the
+    libraries loaded by then (numpy's and scipy's OpenBLAS are, once ``pipeline.tem`` is imported): two
+    Python threads running such functions at once would restore each other's counts in any order."""
 
     @functools.wraps(fn)
     def on_one_thread(*args, **kwargs):

@@ -166,7 +166,7 @@ def test_the_tem_stage_gives_the_same_bits_on_any_thread_count():
     for threads in (1, 3):
         with threadpool_limits(limits=threads):
             prof = extract_profile(image)
-        runs.append((prof.x, prof.z, prof.edge_model["global_fringe"].get("offset_px")))
+        runs.append((prof.x, prof.z, prof.edge_model.get("global_fringe", {}).get("offset_px")))
     (x1, z1, o1), (x3, z3, o3) = runs
     assert x1.shape == x3.shape and np.array_equal(x1, x3) and np.array_equal(z1, z3)
     assert o1 == o3

@@ -88,6 +88,7 @@ def test_the_bounds_kept_for_the_benchmarks_are_this_code_s(name):
     seed0, fixed, i = KEPT_SETS[name]
     kept = pd.read_csv(KEPT_BOUNDS / name)
     assert set(kept.seed0) == {seed0} and set(kept.i) == set(range(len(kept)))
+    assert set(kept.fix) == {" ".join(f"{k}={v}" for k, v in sorted(fixed.items())) or "none"}
     row = kept[kept.i == i].iloc[0]
     kw = dict(layer=("none", "oxide", "DLC")[i % 3], apex_particles=bool((i // 3) % 2))  # bench_tem_independent.case
     kw.update(fixed)
