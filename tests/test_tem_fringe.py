@@ -242,7 +242,7 @@ def test_a_layer_that_beats_only_a_poorly_converged_one_material_fit_is_not_take
     hl_fringe_offset = hl.fringe_offset
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(hl, "fringe_offset", spy)
-        alt = hl.held_layer(prob, fitter, st, poor, pixel_size, 12.0, _bounds(prob.K, 0.02, 12.0, True))
+        alt = hl.held_layer(prob, fitter, st, poor, pixel_size, _bounds(prob.K, 0.02, 12.0, True))
     assert [coated for coated, _ in calls] == [True, False], calls  # the layer passed the first gate
     assert calls[0][1] < 0.9 * poor["chi2"], calls
     assert alt is None
@@ -832,3 +832,40 @@ def test_a_blunt_oxide_tip_read_as_one_material_is_fitted_with_a_held_layer(tmp_
     assert g["n_covered"]
     assert abs(g["dn"]) <= 0.15, g["dn"]  # -0.40 as one material, +0.04 with the held layer
     assert abs(g["edge_bias"]) < 0.1e-9, g["edge_bias"]  # +0.005 nm (one material: +0.11 nm)
+
+
+def test_a_held_layer_thicker_than_the_coated_model_s_bound_is_tried(tmp_path):
+    """Grid image 82 (``bench_tem_independent``, its parameters exactly): n 5.99, a 1.52 nm oxide, 0.24 um
+    underfocus at 221 kV, 0.142 nm px, SNR 23, 1024 px.  Read as one material, n came out 0.45 low.  The held
+    layers stopped at 0.95 x the coated model's thickness bound (11.4 px): 0.8 and 1.2 nm were tried (chi^2 5%
+    below one material's at best, not taken), 1.7 nm (12.0 px) was not.  With the layers tried up to what
+    the fitted band holds (``held_layer.HELD_MAX_PX``, 14 px) the 1.7 nm layer fits with chi^2 3.2e5
+    against 4.8e5 and is taken: dn -0.02, edge RMS 0.14 -> 0.05 nm, the pull-off 4.5 % -> 0.2 % off."""
+    from pipeline.synth.tem_wave import ParticleSpec, TemWaveParams
+
+    apex_particle = ParticleSpec(
+        height=1.6055002887269207e-08, azimuth_deg=187.36896689043147,
+        semi_axes=(1.1264237957003262e-09, 1.3560438557278068e-09, 1.3998217235640084e-09),
+        sink=0.38710241495029074, tilt_deg=61.36424704987443, kind="apex",
+    )  # fmt: skip
+    p = TemWaveParams(
+        n=5.99055500954106, R=2.5174212443022503e-08, S=1.2176863993359395, z_join=2.9563199085098467e-08,
+        shank_half_angle_deg=16.128834707285037, blend_length=3.817215744524668e-08, asymmetry=0.0, layer="oxide",
+        layer_thickness=1.5181521697726181e-09, core_absorption_length_200kv=7.244644539831778e-08,
+        layer_contrast=0.30786374386389803, contamination_contrast=0.11578972655674316, particles=(apex_particle,),
+        pixel_size=1.4181139871598703e-10, shape=(1024, 1024), apex_px=(618.7725727042347, 527.4270562332637),
+        rotation_deg=7.792720842305123, orientation="down", kv=220.78087196013024, defocus=2.356840487856765e-07,
+        cs=0.001186693584577206, aperture=0.008936379624373264, illumination_angle=7.913801259555174e-05,
+        cc=0.0022369744562155394, energy_spread_ev=0.39712950787501267, snr=22.967150058791603, bits=16,
+        background_level=0.5092439997904101, float_gain=1.2680719292415672, offset=44.13995162080022,
+        read_noise=6.59259262988269, psf_sigma=0.4322954001482691, psf_tail_weight=0.08554075058192387,
+        psf_tail_length=2.4622433417646334, illumination_gradient=0.013033950985127402,
+        gradient_angle_deg=274.26388593371, vignetting=0.04980513802202059, seed=82,
+    )  # fmt: skip
+    g, _ = _graded(tmp_path, p)
+    assert not g["lost"], g["lost_reason"]
+    held = [f for f in g["fit_flags"] + g["edge_flags"] if f.startswith("a light layer seen by the coherent rendering")]
+    assert held and "held 1.70 nm layer" in held[0], held
+    assert g["n_covered"]
+    assert abs(g["dn"]) <= 0.1, g["dn"]  # -0.45 as one material, -0.02 with the held layer
+    assert abs(g["pulloff_error"]) < 0.03, g["pulloff_error"]  # 4.5 % as one material, 0.2 %

@@ -41,6 +41,9 @@ held-out, 3 DLC set), no uncoated tip among them; |dn| smaller by 0.06-0.62 on 8
 blunt oxides' (n > 4.5) median dn -0.26 -> -0.13.  Not taken on the one-material
 fits of uncoated tips: the best layer's chi^2 lay 16-87 % above one material's on the five checked.
 Cost: 0.8 s median per image where it is tried and none is taken, 1.9 s where one is (held-out set).
+Layers up to ``HELD_MAX_PX`` (the fitted band's limit, not the coated model's bound on a fitted thickness):
+3 more taken on those sets (grid 82 dn -0.45 -> -0.02, held-out 34 -0.13 -> -0.04, 40 -0.15 -> -0.12),
+the other 28 images the change can reach identical.
 
 Tried.  The coated model fitted under Beer-Lambert with the thickness held at each value (the contrast
 free): it drove the contrast to its bound (0.03-0.05) and its rendering was poor; with the contrast held
@@ -54,13 +57,19 @@ import numpy as np
 
 from pipeline.tem.coating_search import MIN_COAT_PX
 from pipeline.tem.fringe_correction import PHASE_PER_M, _Coherent, fringe_offset
+from pipeline.tem.silhouette_model import BAND_INSIDE_PX
 from pipeline.tem.silhouette_solver import _Fitter
 
 THICKNESSES_NM = (0.8, 1.2, 1.7, 2.4)  # the layers tried (nm): native oxides 1-2 nm (issue 16)
 LAYER_CONTRAST = 0.3  # the layer's attenuation over the core's: an oxide's 0.25-0.35
 SCREEN_STEPS = 3  # Levenberg-Marquardt steps of each layer's coherent fit in the screen
 MIN_GAIN = 0.1  # the layer is taken where its coherent chi^2 is below one material's by this share
-MAX_COAT_SHARE = 0.95  # a layer no thicker than this share of the fitted band inside the edge
+# the thickest layer tried (px): its core's edge, with the starting contour's allowance for the blur
+# (3 x 1.5 px), inside the fitted band.  Not the coated model's bound on a fitted thickness (12 px, where
+# 0.95 of it kept every layer from 1.2 nm up out at 0.1 nm px, from 1.7 nm up at 0.14 nm px: grid 82 of
+# ``bench_tem_independent``, a 1.52 nm oxide at 0.142 nm px, n -0.45 off with 0.8 and 1.2 nm the only
+# layers tried, -0.02 with 1.7 nm; README, issue 16)
+HELD_MAX_PX = BAND_INSIDE_PX - 3.0 * 1.5
 
 
 def _held_state(f2, c, sigma, k, t):
@@ -84,7 +93,7 @@ def _start(fringe, sigma, pixel_size):
     )
 
 
-def held_layer(prob, f1, st, fringe, pixel_size, max_coat, lim2, sign=0):
+def held_layer(prob, f1, st, fringe, pixel_size, lim2, sign=0):
     """The coated alternative of a one-material fit (``f1``, its polished state ``st``, its applied fringe
     correction ``fringe``) with a held layer (module doc): (fitter, state, J^T J, names, coating test,
     fringe) where taken, else None.  ``lim2``: the coated model's bounds (``silhouette_fit._bounds``; the
@@ -92,13 +101,13 @@ def held_layer(prob, f1, st, fringe, pixel_size, max_coat, lim2, sign=0):
     against the fit of both signs, the one-material correction's conflict term (``free_A_px2``,
     ``conflict_sd_px``) is carried over, as ``silhouette_fit._layer_as_fringe`` does."""
     kept = prob.map_kept()
-    alt = _held_layer(prob, f1, st, fringe, pixel_size, max_coat, lim2, sign)
+    alt = _held_layer(prob, f1, st, fringe, pixel_size, lim2, sign)
     if alt is None:  # the one-material fit goes on with its own pixel map, as if no layer had been tried
         prob.restore_map(kept)
     return alt
 
 
-def _held_layer(prob, f1, st, fringe, pixel_size, max_coat, lim2, sign):
+def _held_layer(prob, f1, st, fringe, pixel_size, lim2, sign):
     """``held_layer`` without the pixel map's restoration."""
     c, sigma, k, _, _ = f1.unpack(st.v)
     cost1 = fringe["chi2"]
@@ -107,7 +116,7 @@ def _held_layer(prob, f1, st, fringe, pixel_size, max_coat, lim2, sign):
     best, last = None, np.inf
     for t_nm in THICKNESSES_NM:
         t = t_nm * 1e-9 / float(pixel_size or 0.25e-9)
-        if t < MIN_COAT_PX or t > MAX_COAT_SHARE * max_coat:
+        if t < MIN_COAT_PX or t > HELD_MAX_PX:
             continue
         q, cost, _ = _Coherent(prob, f2, _held_state(f2, c, sigma, k, t), pixel_size, sign).lm(q0, SCREEN_STEPS)
         if best is not None and cost > last:

@@ -304,7 +304,7 @@ def _defocus_fringes(prob, fit, single, pixel_size, coat_hint, sign):
     if coat_hint is None and not fitter.coated and fringe.get("applied"):  # a layer only the rendering sees
         _, _, k0, max_coat, _ = single
         lim2 = _bounds(prob.K, k0, max_coat, True)
-        alt = held_layer(prob, fitter, st, fringe, pixel_size, max_coat, lim2, sign)
+        alt = held_layer(prob, fitter, st, fringe, pixel_size, lim2, sign)
         if alt is not None:
             return alt
     return fitter, st, JTJ, names, coat_test, fringe

@@ -233,6 +233,10 @@ def _chord_in_place(r2, xx, below):
     return r2
 
 
+# the residual pixels' band (px) outside and inside the starting contour (``_Problem``): 3 x 1.5 px for the
+# contour's own distance from the edge, plus 4 px of vacuum or 14 px of body
+BAND_OUTSIDE_PX, BAND_INSIDE_PX = 3.0 * 1.5 + 4.0, 3.0 * 1.5 + 14.0
+
 # what ``_Problem.update_pixel_map`` and ``offset_map`` set: the pixel map
 _MAP_ATTRS = ("_j_res", "_j_ref", "dist_need", "u_res", "Phi", "map_c", "map_coat")
 
@@ -248,7 +252,7 @@ class _Problem:
         self.ztop = 1.02 * hpx
         H, W = img.shape
         # residual pixels: band around the initial curve, z <= ztop
-        out_m, in_m = 3.0 * 1.5 + 4.0, 3.0 * 1.5 + 14.0
+        out_m, in_m = BAND_OUTSIDE_PX, BAND_INSIDE_PX
         sel = z0 <= self.ztop + out_m + 2
         ci = frame.to_image(x0[sel], z0[sel])
         mrg = int(np.ceil(out_m + in_m + 4 * sigma_max + 4))
