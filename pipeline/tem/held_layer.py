@@ -64,11 +64,13 @@ THICKNESSES_NM = (0.8, 1.2, 1.7, 2.4)  # the layers tried (nm): native oxides 1-
 LAYER_CONTRAST = 0.3  # the layer's attenuation over the core's: an oxide's 0.25-0.35
 SCREEN_STEPS = 3  # Levenberg-Marquardt steps of each layer's coherent fit in the screen
 MIN_GAIN = 0.1  # the layer is taken where its coherent chi^2 is below one material's by this share
-# the thickest layer tried (px): its core's edge, with the starting contour's allowance for the blur
-# (3 x 1.5 px), inside the fitted band.  Not the coated model's bound on a fitted thickness (12 px, where
-# 0.95 of it kept every layer from 1.2 nm up out at 0.1 nm px, from 1.7 nm up at 0.14 nm px: grid 82 of
-# ``bench_tem_independent``, a 1.52 nm oxide at 0.142 nm px, n -0.45 off with 0.8 and 1.2 nm the only
-# layers tried, -0.02 with 1.7 nm; README, issue 16)
+# the thickest layer tried (px): the fitted band reaches ``BAND_INSIDE_PX`` inside the reference curve the
+# fit's edge follows (on grid 82 and 97 of ``bench_tem_independent`` its pixels reach 20-22 px inside the
+# fitted curve), and the layer's core edge keeps 3 sigma of blur at sigma up to 1.5 px inside that.  Not
+# 0.95 x the coated model's bound on a fitted thickness (12 px), which kept 1.7 nm out below 0.149 nm px
+# and 1.2 nm below 0.105 nm (the fit is unbinned from 0.1 nm up): grid 82, a 1.52 nm oxide at 0.142 nm px,
+# was n 0.45 low with 0.8 and 1.2 nm the only layers tried, 0.02 with 1.7 nm (11.99 px; README, issue 16).
+# 1.7 nm is still not tried below 0.121 nm px.
 HELD_MAX_PX = BAND_INSIDE_PX - 3.0 * 1.5
 
 

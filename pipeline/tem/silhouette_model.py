@@ -349,7 +349,7 @@ class _Problem:
         curve, so that the map is a function of (c, coat) alone."""
         x, z = self.curve(c)
         # only residual pixels can be near a silhouette (outer edge: inside the band by
-        # construction; core: coat <= 12 px < inner band width)
+        # construction; core: coat <= 12 px fitted, 14 px held (``held_layer.HELD_MAX_PX``) < inner band width)
         # the curve is sampled every 0.25 px; every 2nd point is close enough (distance error
         # <= 0.13 px, arc position <= 0.25 px)
         dec = 2
