@@ -379,13 +379,23 @@ def _coated_alternative(prob, single, st, fringe, pixel_size, sign=0):
     test["layer_not_fringe"] = True
     test["note"] = (
         f"a light layer, not a fringe: the one-material fit's fringe correction took lambda x defocus "
-        f"{fringe.get('free_A_px2', fringe['A_px2']) * nm**2:+.1f} nm^2 ("
-        f"{'against the sign given' if 'free_A_px2' in fringe else 'overfocus'}) and moved the edge "
+        f"{fringe.get('free_A_px2', fringe['A_px2']) * nm**2:+.1f} nm^2 "
+        f"({_free_sign_words(fringe)}) and moved the edge "
         f"{fringe['offset_px'] * nm:+.2f} nm; "
         f"the coated model ({test['thickness_px'] * nm:.2f} nm layer), rendered coherently too, fits the image "
         f"better (chi^2 {cost2:.0f} against {cost1:.0f})"
     )
     return f2, st2, JTJ2, names2, test, fr2
+
+
+def _free_sign_words(fringe):
+    """What the one-material fit's correction (of both signs, ``fringe``) said about the sign, in words, for
+    the coated alternative's note."""
+    if "free_A_px2" in fringe:
+        return "against the sign given"
+    if fringe["A_px2"] < 0:
+        return "overfocus"
+    return f"underfocus, with an overfocus within {100 * OVERFOCUS_MARGIN:g} % of it in chi^2"
 
 
 def _fit_binned(
