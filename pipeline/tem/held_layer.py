@@ -74,6 +74,13 @@ MIN_GAIN = 0.1  # the layer is taken where its coherent chi^2 is below one mater
 HELD_MAX_PX = BAND_INSIDE_PX - 3.0 * 1.5
 
 
+def layers_tried_px(pixel_size):
+    """The held layers' thicknesses (px) tried at ``pixel_size`` (m; the fit's, after any binning): those of
+    ``THICKNESSES_NM`` from ``MIN_COAT_PX`` to ``HELD_MAX_PX``, thinnest first."""
+    px = float(pixel_size or 0.25e-9)
+    return [t for t in (t_nm * 1e-9 / px for t_nm in THICKNESSES_NM) if MIN_COAT_PX <= t <= HELD_MAX_PX]
+
+
 def _held_state(f2, c, sigma, k, t):
     """The coated model's state at the one-material fit's outer curve ``c``, blur ``sigma``, a layer ``t``
     px thick of attenuation ``LAYER_CONTRAST`` x ``k`` over a core of ``k`` (1/px)."""
@@ -116,10 +123,7 @@ def _held_layer(prob, f1, st, fringe, pixel_size, lim2, sign):
     q0 = _start(fringe, sigma, pixel_size)
     f2 = _Fitter(prob, coated=True)
     best, last = None, np.inf
-    for t_nm in THICKNESSES_NM:
-        t = t_nm * 1e-9 / float(pixel_size or 0.25e-9)
-        if t < MIN_COAT_PX or t > HELD_MAX_PX:
-            continue
+    for t in layers_tried_px(pixel_size):
         q, cost, _ = _Coherent(prob, f2, _held_state(f2, c, sigma, k, t), pixel_size, sign).lm(q0, SCREEN_STEPS)
         if best is not None and cost > last:
             break  # past the best thickness (module doc)
